@@ -1,0 +1,73 @@
+"""The camera interface every adapter implements."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from drivers._errors import DeviceError
+
+
+class GrabFailed(DeviceError):
+    """A frame could not be grabbed (incomplete buffer, timeout after retries, camera vanished)."""
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One grabbed image.
+
+    Attributes
+    ----------
+    image : 2-D uint8 or uint16 array, ``image[row, col]``.
+    timestamp : float
+        Host time (``time.time()``, seconds) when the frame was retrieved.
+    frame_id : int
+        The camera's (or the adapter's) running frame number.
+    camera : str
+        Serial number or name of the camera.
+    saturation : int
+        The pixel value that means "saturated" for this pixel format (255, 4095, ...).
+    """
+
+    image: np.ndarray
+    timestamp: float
+    frame_id: int
+    camera: str
+    saturation: int
+
+
+@dataclass(frozen=True)
+class Roi:
+    offset_x: int
+    offset_y: int
+    width: int
+    height: int
+
+
+@runtime_checkable
+class Camera(Protocol):
+    """One camera. ``grab`` always returns a frame or raises; it never returns None."""
+
+    name: str
+
+    def open(self) -> None: ...
+
+    def close(self) -> None: ...
+
+    def __enter__(self) -> "Camera": ...
+
+    def __exit__(self, *exc) -> None: ...
+
+    def configure(
+        self,
+        *,
+        exposure_s: float | None = None,
+        gain_db: float | None = None,
+        pixel_format: str | None = None,
+        roi: Roi | None = None,
+        software_trigger: bool | None = None,
+    ) -> None: ...
+
+    def grab(self, timeout: float = 2.0) -> Frame: ...

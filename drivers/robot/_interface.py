@@ -1,0 +1,98 @@
+"""The robot interface every adapter implements.
+
+Poses are TCP poses in the robot base frame as ``(6,)`` arrays ``[x, y, z, rx, ry, rz]``: metres
+and a rotation vector (axis times angle, radians), the convention of UR controllers. Joint
+positions are ``(6,)`` arrays in radians. Speeds are m/s (linear) or rad/s (joint).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from drivers._errors import DeviceError, DeviceFault
+
+
+class ProtectiveStop(DeviceFault):
+    """The controller is in protective stop; motion is impossible until it is cleared."""
+
+
+class EmergencyStop(DeviceFault):
+    """The emergency stop is engaged."""
+
+
+class ProgramStopped(DeviceFault):
+    """The controller's program (the control script) is not running."""
+
+
+class MoveFailed(DeviceError):
+    """A move did not complete (stopped, rejected by the controller, or did not reach its target)."""
+
+
+@dataclass(frozen=True)
+class RobotState:
+    """A snapshot of the controller's state."""
+
+    connected: bool
+    protective_stop: bool
+    emergency_stop: bool
+    program_running: bool
+    steady: bool
+    robot_mode: int = -1
+    safety_mode: int = -1
+
+
+@runtime_checkable
+class Robot(Protocol):
+    """One robot controller. Every call that waits takes or has a timeout."""
+
+    name: str
+
+    def connect(self) -> None: ...
+
+    def close(self) -> None: ...
+
+    def __enter__(self) -> "Robot": ...
+
+    def __exit__(self, *exc) -> None: ...
+
+    def tcp_pose(self) -> np.ndarray:
+        """Actual TCP pose ``[x, y, z, rx, ry, rz]`` in the base frame."""
+        ...
+
+    def joint_positions(self) -> np.ndarray: ...
+
+    def move_linear(
+        self,
+        pose: np.ndarray,
+        speed: float = 0.25,
+        acceleration: float = 1.2,
+        *,
+        asynchronous: bool = False,
+        timeout: float | None = None,
+    ) -> None:
+        """Linear move to ``pose``. Checks the envelope first (raises ``MotionRefused``); a
+        protective stop or lost connection during the move raises its typed error."""
+        ...
+
+    def move_joint(
+        self,
+        joints: np.ndarray,
+        speed: float = 1.05,
+        acceleration: float = 1.4,
+        *,
+        asynchronous: bool = False,
+        timeout: float | None = None,
+    ) -> None: ...
+
+    def stop(self, deceleration: float = 2.0) -> None: ...
+
+    def wait_until_steady(self, timeout: float = 10.0) -> None: ...
+
+    def set_tcp(self, offset: np.ndarray) -> None: ...
+
+    def tcp_offset(self) -> np.ndarray: ...
+
+    def state(self) -> RobotState: ...

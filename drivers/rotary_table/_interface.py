@@ -1,0 +1,52 @@
+"""The rotary table interface every adapter implements. Angles in radians, speeds in rad/s."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+from drivers._errors import DeviceFault
+
+
+class TableFault(DeviceFault):
+    """The table reports an alarm or error of its own (drive fault, following error, ...)."""
+
+
+@dataclass(frozen=True)
+class TableState:
+    in_position: bool
+    moving: bool
+    homed: bool
+    fault: str | None  # None when healthy, else the device's own alarm/error text or code
+    position: float  # rad, as reported by the table's encoder
+
+
+@runtime_checkable
+class RotaryTable(Protocol):
+    name: str
+
+    def connect(self) -> None: ...
+
+    def close(self) -> None: ...
+
+    def __enter__(self) -> "RotaryTable": ...
+
+    def __exit__(self, *exc) -> None: ...
+
+    def home(self, timeout: float = 30.0) -> None: ...
+
+    def move_absolute(self, angle: float, speed: float | None = None) -> None:
+        """Start a move; returns at once. Use ``wait_in_position``."""
+        ...
+
+    def move_relative(self, delta: float, speed: float | None = None) -> None: ...
+
+    def wait_in_position(self, timeout: float = 30.0) -> float:
+        """Block until the table reports in position; returns the position (rad)."""
+        ...
+
+    def position(self) -> float: ...
+
+    def stop(self) -> None: ...
+
+    def state(self) -> TableState: ...

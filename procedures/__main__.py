@@ -1,0 +1,5 @@
+import sys
+
+from procedures.cli import main
+
+sys.exit(main())
