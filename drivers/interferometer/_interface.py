@@ -12,6 +12,11 @@ class BeamInterrupted(DeviceError):
     """The beam was broken (or the signal too weak) inside the requested window."""
 
 
+class DatumLost(BeamInterrupted):
+    """No valid datum: never set since power-on, or the fringe count was lost when the beam broke
+    (or the head was re-aimed). Displacements mean nothing until ``zero()`` sets a new datum."""
+
+
 class FeedGap(DeviceError):
     """Samples were lost (a gap in the sample counter) or the feed went stale."""
 

@@ -1,0 +1,201 @@
+"""The CAN frame layout of the interferometer feed, and its decoder.
+
+No interferometer vendor publishes a CAN layout, so this one is ours (documented in
+``docs/interferometer.md``). Everything that a different head or firmware could change (ids,
+scaling, rates) lives in ``FrameLayout``; the byte positions below are the protocol itself.
+
+Every frame is 8 bytes, standard 11-bit id, little-endian, and ends with a CRC-8/SAE-J1850
+(poly 0x1D, init 0xFF, xor-out 0xFF) computed over the id (2 bytes, big-endian) followed by
+data bytes 0..6, so a frame with a flipped bit *or* a wrong id fails the check.
+
+Displacement (``displacement_id``, default 0x181, ``sample_rate`` Hz)::
+
+    0..4  int40  displacement in ``resolution`` metres from the datum (two's complement)
+    5     uint8  sample counter, +1 per sample, wraps at 256
+    6     uint8  status: bit0 beam OK, bit1 signal low, bit2 datum set, bit3 overrange,
+                 bits 4..7 signal strength in 1/15 steps
+    7     uint8  CRC-8
+
+Status / heartbeat (``status_id``, default 0x281, ``status_rate`` Hz)::
+
+    0     uint8  status bits as above (bits 0..3)
+    1..2  uint16 signal strength, 0..65535 = 0..1
+    3     uint8  beam axis the head is aimed along: 0 = x, 1 = y, 2 = z of M
+    4     uint8  datum generation (+1 at every datum)
+    5     uint8  reserved, 0
+    6     uint8  heartbeat counter
+    7     uint8  CRC-8
+
+Command (host → head, ``command_id``, default 0x601) and reply (``reply_id``, default 0x581)::
+
+    command: 0 opcode (1 = set datum), 1 token, 2..6 zero, 7 CRC-8
+    reply:   0 opcode, 1 token, 2 result (0 = done, 1 = refused: beam not OK),
+             3 datum generation, 4..6 zero, 7 CRC-8
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+from typing import Any, Mapping
+
+from drivers._errors import ProtocolError
+
+OPCODE_DATUM = 0x01
+REPLY_DONE = 0
+REPLY_REFUSED = 1
+
+STATUS_BEAM_OK = 0x01
+STATUS_SIGNAL_LOW = 0x02
+STATUS_DATUM_SET = 0x04
+STATUS_OVERRANGE = 0x08
+
+AXIS_NAMES = ("x", "y", "z")
+FRAME_LENGTH = 8
+COUNTER_MODULUS = 256
+DISPLACEMENT_BITS = 40
+
+
+@dataclass(frozen=True)
+class FrameLayout:
+    """Ids, scaling and rates of the feed. Build from a station file with ``from_dict``."""
+
+    displacement_id: int = 0x181
+    status_id: int = 0x281
+    command_id: int = 0x601
+    reply_id: int = 0x581
+    resolution: float = 1e-10  # metres per count (0.1 nm; the int40 field then spans ±55 m)
+    sample_rate: float = 1000.0  # displacement frames per second
+    status_rate: float = 10.0  # heartbeat frames per second
+
+    def __post_init__(self) -> None:
+        ids = [self.displacement_id, self.status_id, self.command_id, self.reply_id]
+        for can_id in ids:
+            if not 0 <= int(can_id) <= 0x7FF:
+                raise ValueError(f"frame layout: CAN id {can_id!r} is not a standard 11-bit id (0..0x7FF)")
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"frame layout: the four CAN ids must differ, got {[hex(i) for i in ids]}")
+        if not self.resolution > 0:
+            raise ValueError(f"frame layout: resolution must be > 0 m, got {self.resolution!r}")
+        if not 0 < self.sample_rate <= 10_000:
+            raise ValueError(f"frame layout: sample_rate must be in (0, 10000] Hz, got {self.sample_rate!r}")
+        if not 0 < self.status_rate <= self.sample_rate:
+            raise ValueError(f"frame layout: status_rate must be in (0, sample_rate], got {self.status_rate!r}")
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any] | None) -> "FrameLayout":
+        """Accepts ids as ints or hex strings (``"0x181"``)."""
+        data = dict(data or {})
+        known = {f.name for f in fields(cls)}
+        unknown = set(data) - known
+        if unknown:
+            raise ValueError(f"frame layout: unknown field(s) {sorted(unknown)}; expected {sorted(known)}")
+        for key in ("displacement_id", "status_id", "command_id", "reply_id"):
+            if isinstance(data.get(key), str):
+                data[key] = int(data[key], 0)
+        return cls(**data)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @property
+    def max_counts(self) -> int:
+        return 2 ** (DISPLACEMENT_BITS - 1) - 1
+
+
+def crc8_j1850(data: bytes) -> int:
+    """CRC-8/SAE-J1850 (check value of ``b"123456789"`` is 0x4B)."""
+    crc = 0xFF
+    for byte in data:
+        crc ^= byte
+        for _ in range(8):
+            crc = ((crc << 1) ^ 0x1D) & 0xFF if crc & 0x80 else (crc << 1) & 0xFF
+    return crc ^ 0xFF
+
+
+def frame_crc(can_id: int, data: bytes) -> int:
+    """The CRC a frame with this id must carry in byte 7."""
+    return crc8_j1850(can_id.to_bytes(2, "big") + bytes(data[:7]))
+
+
+@dataclass(frozen=True)
+class DisplacementFrame:
+    counts: int
+    counter: int
+    status: int
+
+    @property
+    def beam_ok(self) -> bool:
+        return bool(self.status & STATUS_BEAM_OK)
+
+    @property
+    def signal_low(self) -> bool:
+        return bool(self.status & STATUS_SIGNAL_LOW)
+
+    @property
+    def datum_set(self) -> bool:
+        return bool(self.status & STATUS_DATUM_SET)
+
+    @property
+    def overrange(self) -> bool:
+        return bool(self.status & STATUS_OVERRANGE)
+
+    @property
+    def signal_strength(self) -> float:
+        return (self.status >> 4) / 15.0
+
+
+@dataclass(frozen=True)
+class StatusFrame:
+    status: int
+    signal_strength: float
+    axis: str
+    datum_generation: int
+    heartbeat: int
+
+
+@dataclass(frozen=True)
+class ReplyFrame:
+    opcode: int
+    token: int
+    result: int
+    datum_generation: int
+
+
+def check_frame(device: str, can_id: int, data: bytes, what: str) -> None:
+    """Raise ``ProtocolError`` unless ``data`` is a full 8-byte frame with a good CRC."""
+    if len(data) != FRAME_LENGTH:
+        raise ProtocolError(device, f"decode {what} frame 0x{can_id:03X}",
+                            f"{len(data)} data bytes, expected {FRAME_LENGTH}")
+    expected = frame_crc(can_id, data)
+    if data[7] != expected:
+        raise ProtocolError(device, f"decode {what} frame 0x{can_id:03X}",
+                            f"CRC mismatch (frame carries 0x{data[7]:02X}, computed 0x{expected:02X})")
+
+
+def decode_displacement(device: str, can_id: int, data: bytes) -> DisplacementFrame:
+    check_frame(device, can_id, data, "displacement")
+    counts = int.from_bytes(data[0:5], "little", signed=True)
+    return DisplacementFrame(counts=counts, counter=data[5], status=data[6])
+
+
+def decode_status(device: str, can_id: int, data: bytes) -> StatusFrame:
+    check_frame(device, can_id, data, "status")
+    if data[3] >= len(AXIS_NAMES):
+        raise ProtocolError(device, f"decode status frame 0x{can_id:03X}", f"axis code {data[3]} is not 0, 1 or 2")
+    return StatusFrame(
+        status=data[0],
+        signal_strength=int.from_bytes(data[1:3], "little") / 65535.0,
+        axis=AXIS_NAMES[data[3]],
+        datum_generation=data[4],
+        heartbeat=data[6],
+    )
+
+
+def decode_reply(device: str, can_id: int, data: bytes) -> ReplyFrame:
+    check_frame(device, can_id, data, "reply")
+    return ReplyFrame(opcode=data[0], token=data[1], result=data[2], datum_generation=data[3])
+
+
+def encode_command(command_id: int, opcode: int, token: int) -> bytes:
+    body = bytes([opcode & 0xFF, token & 0xFF, 0, 0, 0, 0, 0])
+    return body + bytes([frame_crc(command_id, body)])
