@@ -1,0 +1,200 @@
+"""Stripe lines on the screens: the exact forward model, and measured crosses mapped onto screens.
+
+Fans are labelled by the two OPR axes they contain, emitter first: emitter x fans in "xy" and
+"xz", emitter y in "yz" and "yx", emitter z in "zx" and "zy" (method.md §1). The fan "ka" has unit
+normal R·e_j, j the third axis, and its stripe runs (nominally) along M's axis a on screen k.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Mapping
+
+import numpy as np
+
+from instrument.pose._errors import CrossOffScreenError, MissingScreenError, PoseError, StripeMatchError
+from instrument.pose._geometry import AXIS_INDEX, SCREEN_NAMES, Geometry, Screen
+from instrument.pose._rotation import Pose
+
+# Per screen (= emitter) the two fans; FAN_AXES[fan] = (axis the stripe runs along, normal axis j).
+FANS: dict[str, tuple[str, str]] = {"x": ("xy", "xz"), "y": ("yz", "yx"), "z": ("zx", "zy")}
+FAN_AXES: dict[str, tuple[int, int]] = {
+    fan: (AXIS_INDEX[fan[1]], 3 - AXIS_INDEX[fan[0]] - AXIS_INDEX[fan[1]]) for pair in FANS.values() for fan in pair
+}
+_MAX_MATCH_ANGLE = np.radians(40.0)
+_IDENTITY, _ZERO = np.eye(3), np.zeros(3)
+_ENDS = np.array([[-1.0], [1.0]])
+_DISTORTED_SAMPLES = np.linspace(-1.0, 1.0, 9)[:, None]
+
+
+@dataclass(frozen=True)
+class ScreenLine:
+    """A stripe line in a screen's (u, v) coordinates, metres.
+
+    Attributes
+    ----------
+    point : (2,) array
+        A point on the line (for a measured stripe: the middle of the observed segment).
+    direction : (2,) array
+        Unit direction, oriented along the M axis the stripe nominally runs along.
+    half_length : float
+        Half the length of the observed segment, m (0 for a predicted line).
+    """
+
+    point: np.ndarray
+    direction: np.ndarray
+    half_length: float = 0.0
+
+    def distance(self, points_uv) -> np.ndarray:
+        """Signed perpendicular distance of points (N, 2) from the line, m."""
+        d = np.atleast_2d(points_uv) - self.point
+        return d[:, 0] * self.direction[1] - d[:, 1] * self.direction[0]
+
+
+@dataclass(frozen=True)
+class ScreenCross:
+    """One measured cross on its screen: two stripe lines keyed by fan label, and the centre.
+
+    ``center`` is the intersection of the two lines in (u, v) m; ``center_m`` the same point in M.
+    """
+
+    screen: str
+    lines: Mapping[str, ScreenLine]
+    center: np.ndarray
+    center_m: np.ndarray
+
+
+def _fan_line(rotation: np.ndarray, translation: np.ndarray, screen: Screen, fan: str) -> ScreenLine:
+    """Exact intersection of the fan plane {P : m·(P − t) = 0} with the screen plane."""
+    along, normal_axis = FAN_AXES[fan]
+    m = rotation[:, normal_axis]
+    n2 = np.array([m @ screen.u, m @ screen.v])  # m·(o + a·u + b·v − t) = 0 is n2·(a, b) = −c
+    norm2 = float(n2 @ n2)
+    if norm2 < 1e-12:
+        raise PoseError(f"fan {fan!r} is parallel to screen {screen.name!r}: no stripe")
+    c = float(m @ (screen.origin - translation))
+    point = -c * n2 / norm2
+    direction = np.array([n2[1], -n2[0]]) / np.sqrt(norm2)
+    along_3d = direction[0] * screen.u + direction[1] * screen.v
+    if along_3d @ rotation[:, along] < 0:  # orient along the OPR axis the fan contains
+        direction = -direction
+    return ScreenLine(point, direction, 0.0)
+
+
+def predict_lines(pose: Pose, geometry: Geometry) -> dict[str, dict[str, ScreenLine]]:
+    """The six stripe lines a pose puts on the screens (exact plane–plane intersections).
+
+    Returns ``{screen: {fan: ScreenLine}}`` in each screen's (u, v) coordinates, metres; the
+    direction of fan "ka" points along the OPR's axis a as seen on the screen.
+    """
+    rotation, translation = pose.rotation, pose.translation
+    return {
+        name: {fan: _fan_line(rotation, translation, geometry.screens[name], fan) for fan in FANS[name]}
+        for name in SCREEN_NAMES
+    }
+
+
+def nominal_directions(screen: Screen) -> dict[str, np.ndarray]:
+    """Each fan's stripe direction (u, v) on the screen at the identity rotation."""
+    cached = screen.cache.get("nominal_directions")
+    if cached is None:  # depends on the screen only: computed once per Screen
+        cached = {fan: _fan_line(_IDENTITY, _ZERO, screen, fan).direction for fan in FANS[screen.name]}
+        screen.cache["nominal_directions"] = cached
+    return cached
+
+
+def intersect(first: ScreenLine, second: ScreenLine) -> np.ndarray:
+    """Intersection of two non-parallel 2-D lines."""
+    (a, c), (b, d) = first.direction, -second.direction  # solve [a b; c d]·(s, s') = Δ by Cramer
+    delta = second.point - first.point
+    determinant = a * d - b * c
+    if abs(determinant) < 1e-12:
+        raise PoseError("intersecting two parallel stripe lines")
+    return first.point + ((delta[0] * d - delta[1] * b) / determinant) * first.direction
+
+
+def _stripe_to_screen(stripe, screen: Screen, label: str) -> ScreenLine:
+    point = np.asarray(stripe.point, dtype=float)
+    direction = np.asarray(stripe.direction, dtype=float)
+    if point.shape != (2,) or direction.shape != (2,) or not math.isfinite(point.sum() + direction.sum()):
+        raise PoseError(f"screen {screen.name!r}: {label} stripe has a non-finite or malformed point/direction")
+    norm = float(np.linalg.norm(direction))
+    if norm < 1e-9:
+        raise PoseError(f"screen {screen.name!r}: {label} stripe has a zero direction")
+    direction = direction / norm
+    # The segment the vision fitted: about one cross-section per pixel along the stripe.
+    half_px = max(float(stripe.sections), 2.0) / 2.0
+    # A homography maps lines to lines exactly: two ends suffice unless there is distortion.
+    steps = _DISTORTED_SAMPLES if screen.distortion is not None else _ENDS
+    uv = screen.pixels_to_screen(point + (half_px * steps) * direction)
+    samples = len(steps)
+    if not math.isfinite(uv.sum()):
+        raise PoseError(f"screen {screen.name!r}: {label} stripe maps to infinity (beyond the homography's horizon)")
+    if samples == 2:
+        span = uv[1] - uv[0]
+        length = float(np.hypot(span[0], span[1]))
+        return ScreenLine((uv[0] + uv[1]) / 2.0, span / length, length / 2.0)
+    centroid = uv.mean(axis=0)
+    _, _, vt = np.linalg.svd(uv - centroid)  # straight line through the slightly curved image
+    line_direction = vt[0]
+    along = (uv - centroid) @ line_direction
+    return ScreenLine(centroid, line_direction, float(along.max() - along.min()) / 2.0)
+
+
+def observe_cross(measurement, screen: Screen) -> ScreenCross:
+    """Map a ``CrossMeasurement`` (pixels) onto its screen and label its stripes by fan.
+
+    Which stripe belongs to which fan is decided by direction on the screen, after the mapping,
+    so a mirrored or turned camera changes nothing. Raises a ``PoseError`` subclass when the cross
+    is off the image, the stripes are unusable, or they cannot be matched unambiguously.
+    """
+    name = screen.name
+    center_px = np.asarray(getattr(measurement, "center", np.full(2, np.nan)), dtype=float)
+    if center_px.shape != (2,) or not np.all(np.isfinite(center_px)):
+        raise PoseError(f"screen {name!r}: cross centre is not a finite (x, y) pixel point: {center_px.tolist()}")
+    if not screen.contains_pixel(center_px):
+        raise CrossOffScreenError(
+            f"screen {name!r}: cross centre ({center_px[0]:.1f}, {center_px[1]:.1f}) px is off the "
+            f"{screen.size_px[0]}×{screen.size_px[1]} px image"
+        )
+    stripes = [
+        _stripe_to_screen(measurement.horizontal, screen, "horizontal"),
+        _stripe_to_screen(measurement.vertical, screen, "vertical"),
+    ]
+    if abs(float(stripes[0].direction @ stripes[1].direction)) > np.cos(np.radians(20.0)):
+        raise CrossOffScreenError(f"screen {name!r}: the two stripes are nearly parallel on the screen")
+    nominal = nominal_directions(screen)
+    fans = FANS[name]
+    cosines = np.array([[abs(float(s.direction @ nominal[f])) for f in fans] for s in stripes])
+    order = (0, 1) if cosines[0, 0] + cosines[1, 1] >= cosines[0, 1] + cosines[1, 0] else (1, 0)
+    lines: dict[str, ScreenLine] = {}
+    for stripe_index, fan in zip(order, fans):
+        stripe = stripes[stripe_index]
+        cosine = float(stripe.direction @ nominal[fan])
+        if abs(cosine) < np.cos(_MAX_MATCH_ANGLE):
+            raise StripeMatchError(
+                f"screen {name!r}: stripe at {np.degrees(np.arccos(min(abs(cosine), 1.0))):.1f}° from fan "
+                f"{fan!r}'s nominal direction; stripes can be matched to fans only within "
+                f"{np.degrees(_MAX_MATCH_ANGLE):.0f}°"
+            )
+        direction = stripe.direction if cosine > 0 else -stripe.direction
+        lines[fan] = ScreenLine(stripe.point, direction, stripe.half_length)
+    center = intersect(lines[fans[0]], lines[fans[1]])
+    return ScreenCross(name, lines, center, screen.to_frame(center)[0])
+
+
+def observe_crosses(measurements: Mapping[str, object], geometry: Geometry) -> dict[str, ScreenCross]:
+    """``observe_cross`` for the three screens; a missing screen raises ``MissingScreenError``."""
+    if not isinstance(measurements, Mapping):
+        raise PoseError(f"measurements: expected a mapping {{'x': ..., 'y': ..., 'z': ...}}, got {type(measurements).__name__}")
+    missing = [name for name in SCREEN_NAMES if measurements.get(name) is None]
+    if missing:
+        raise MissingScreenError(
+            f"no cross measurement for screen(s) {', '.join(missing)} (got {', '.join(sorted(map(str, measurements))) or 'none'}); "
+            "all three crosses are needed for a 6-DOF pose"
+        )
+    unknown = set(measurements) - set(SCREEN_NAMES)
+    if unknown:
+        raise PoseError(f"measurements: unknown screen(s) {sorted(map(str, unknown))}; expected x, y, z")
+    return {name: observe_cross(measurements[name], geometry.screens[name]) for name in SCREEN_NAMES}
