@@ -1,0 +1,82 @@
+"""Start or continue a run in a few lines (what the CLI and the tests use).
+
+>>> with open_engine("runs", procedure="iso9283_repeatability", station="station.yaml") as engine:
+...     state = engine.execute()
+"""
+
+from __future__ import annotations
+
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+from procedures._engine import RunEngine, create_run
+from procedures._errors import RunError
+from procedures._hooks import HookRunner
+from procedures._loading import load_procedure, load_station, resolve_procedure_path
+from procedures._models import HookSpec, StationFile
+from procedures._science import InstrumentScience
+from procedures._station import StationRuntime
+from procedures._store import RunStore
+
+
+@contextmanager
+def open_engine(
+    runs_dir: str | Path,
+    *,
+    procedure: str | Path | None = None,
+    station: str | Path | None = None,
+    run_id: str | None = None,
+    science: Any = None,
+    devices: dict[str, Any] | None = None,
+    operator: Any = None,
+    listener: Callable[[dict], None] | None = None,
+    pause_handler: Callable[[RunEngine], str] | None = None,
+    pause_timeout_s: float = 3600.0,
+    extra_hooks: list[HookSpec] = (),
+) -> Iterator[RunEngine]:
+    """A ``RunEngine`` for a new run (``procedure`` + ``station``) or a stored one (``run_id``).
+
+    On resume the station snapshot stored with the run is used, unless ``station`` names a file
+    (e.g. a freshly started simulated cell); its frames and envelope must equal the snapshot's.
+    Devices are closed (after the engine has brought them to a safe state) when the block ends.
+    """
+    store = RunStore(runs_dir)
+    runtime = None
+    try:
+        custom_science = science is not None
+        science = science if custom_science else InstrumentScience()
+        if run_id is None:
+            if procedure is None or station is None:
+                raise RunError("a new run needs a procedure and a station")
+            procedure_path = resolve_procedure_path(procedure)
+            text = procedure_path.read_text(encoding="utf-8")
+            proc = load_procedure(procedure_path, text)
+            station_model = load_station(station, check_geometry=not custom_science)
+            runtime = StationRuntime(station_model, devices=devices, operator=operator)
+            run_id = create_run(store, proc, runtime, science, procedure_file=str(procedure_path.resolve()),
+                                procedure_text=text, station_path=str(Path(station).resolve()))
+        else:
+            run = store.get_run(run_id)
+            run_id = run["id"]
+            proc = load_procedure(run["procedure_file"] or f"run {run_id}", run["procedure_text"])
+            snapshot = StationFile.model_validate(run["station"])
+            if station is not None:
+                station_model = load_station(station, check_geometry=not custom_science)
+                for part in ("frames", "envelope"):
+                    if getattr(station_model, part) != getattr(snapshot, part):
+                        raise RunError(f"station {station}: its {part} differ from the run's snapshot; "
+                                       "resume on the station the run started on")
+                store.update_run(run_id, station=station_model.model_dump(), station_path=str(Path(station).resolve()))
+            else:
+                station_model = snapshot
+            runtime = StationRuntime(station_model, devices=devices, operator=operator)
+        hooks = HookRunner([*station_model.hooks, *proc.hooks, *extra_hooks])
+        engine = RunEngine(store, run_id, proc, runtime, science, hooks=hooks, listener=listener,
+                           pause_handler=pause_handler, pause_timeout_s=pause_timeout_s)
+        yield engine
+    finally:
+        if runtime is not None:
+            runtime.safe_state()
+            runtime.close()
+        store.close()

@@ -1,0 +1,84 @@
+"""Load YAML while remembering the line of every field, so errors can name ``file:line``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from procedures._errors import ConfigError
+
+Path_ = tuple[Any, ...]
+
+
+class MarkedYaml:
+    """A parsed YAML document plus the 1-based line of each field path.
+
+    ``lines[("parameters", "cycles")]`` is the line of the *value* of that field; ``key_lines``
+    the line of its key. The empty path is the document itself.
+    """
+
+    def __init__(self, data: Any, lines: dict[Path_, int], key_lines: dict[Path_, int], source: str) -> None:
+        self.data = data
+        self.lines = lines
+        self.key_lines = key_lines
+        self.source = source
+
+    def line_of(self, path: Path_) -> int:
+        """The line of ``path`` or of its nearest existing ancestor (a missing field is reported
+        at the mapping that should hold it)."""
+        path = tuple(path)
+        while path:
+            if path in self.key_lines:
+                return self.key_lines[path]
+            if path in self.lines:
+                return self.lines[path]
+            path = path[:-1]
+        return self.lines.get((), 1)
+
+    def where(self, path: Path_) -> str:
+        return f"{self.source}:{self.line_of(path)}"
+
+
+def load_marked(path: str | Path, text: str | None = None) -> MarkedYaml:
+    """Parse ``path`` (or ``text``, named ``path``) into a ``MarkedYaml``.
+
+    Raises
+    ------
+    ConfigError
+        When the file cannot be read or is not valid YAML (with the parser's line).
+    """
+    source = str(path)
+    if text is None:
+        try:
+            text = Path(path).read_text(encoding="utf-8")
+        except OSError as exc:
+            raise ConfigError([f"{source}: cannot read file: {exc.strerror or exc}"]) from None
+    try:
+        node = yaml.compose(text, Loader=yaml.SafeLoader)
+        data = yaml.safe_load(text)
+    except yaml.MarkedYAMLError as exc:
+        mark = exc.problem_mark or exc.context_mark
+        line = mark.line + 1 if mark else 1
+        raise ConfigError([f"{source}:{line}: YAML syntax: {exc.problem or exc}"]) from None
+    except yaml.YAMLError as exc:
+        raise ConfigError([f"{source}:1: YAML: {exc}"]) from None
+    lines: dict[Path_, int] = {}
+    key_lines: dict[Path_, int] = {}
+    if node is not None:
+        _walk(node, (), lines, key_lines)
+    return MarkedYaml(data, lines, key_lines, source)
+
+
+def _walk(node: yaml.Node, path: Path_, lines: dict, key_lines: dict) -> None:
+    lines[path] = node.start_mark.line + 1
+    if isinstance(node, yaml.MappingNode):
+        for key_node, value_node in node.value:
+            key = yaml.safe_load(yaml.serialize(key_node)) if not isinstance(key_node, yaml.ScalarNode) else key_node.value
+            child = path + (key,)
+            key_lines[child] = key_node.start_mark.line + 1
+            _walk(value_node, child, lines, key_lines)
+    elif isinstance(node, yaml.SequenceNode):
+        for index, item in enumerate(node.value):
+            _walk(item, path + (index,), lines, key_lines)

@@ -1,0 +1,375 @@
+"""In-process fake cell for the procedure-layer tests: devices, operator, and a fake measurement core.
+
+The fake world holds a true OPR pose; the robot moves it (with seeded repeatability noise), the
+table turns it, the interferometer reads it, and ``FakeScience.measure`` returns it with a known
+smooth systematic error plus noise, so the engine's results can be checked against truth.
+Also runnable: ``python -m tests.fakes RUNS_DIR STATION PROCEDURE [--move-delay S] [--resume RUN]``
+runs a procedure on the fakes in a child process (the kill -9 test).
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from drivers._errors import MotionRefused
+from drivers.camera._interface import Frame, GrabFailed
+from drivers.robot._envelope import MotionEnvelope
+from drivers.robot._interface import ProtectiveStop, RobotState
+from drivers.rotary_table._interface import TableState
+from procedures._geometry import euler_to_matrix, matrix_to_euler, tcp_in_m, ur_to_matrix
+from procedures._science import CalibrationResult, MeasurementFailed, PoseMeasurement, record_id_of
+
+REFERENCE_TCP = [0.45, -0.10, 0.27, np.pi, 0.0, 0.0]
+TOOL_IN_OPR = [0.0, 0.0, 0.07, 0.0, 0.0, 0.0]
+COMPONENTS = ("x", "y", "z", "alpha", "theta", "gamma")
+
+
+def station_dict(truth_log: str | None = None, **overrides) -> dict:
+    data = {
+        "name": "fake cell",
+        "devices": {
+            "robot": {"adapter": "fake"},
+            "cameras": {s: {"adapter": "fake", "serial": f"fake-{s}"} for s in "xyz"},
+            "rotary_table": {"adapter": "fake"},
+            "interferometer": {"adapter": "fake"},
+        },
+        "geometry": {"screens": {s: {"origin": [0, 0, 0], "u": [1, 0, 0], "v": [0, 1, 0]} for s in "xyz"}},
+        "frames": {"reference_tcp_pose": REFERENCE_TCP, "tcp_offset": [0, 0, 0.08, 0, 0, 0],
+                   "tool_in_opr": TOOL_IN_OPR},
+        "envelope": {"box_min": [0.2, -0.4, 0.1], "box_max": [0.7, 0.2, 0.5], "reference_rotvec": [np.pi, 0, 0],
+                     "max_tilt": 0.5, "max_speed": 0.5, "max_acceleration": 2.0},
+        "calibration": {"record": None},
+        "operator": "none",
+    }
+    if truth_log:
+        data["simulation"] = {"truth_log": truth_log}
+    data.update(overrides)
+    return data
+
+
+def write_station(path: Path, **kwargs) -> Path:
+    path.write_text(yaml.safe_dump(station_dict(**kwargs), sort_keys=False), encoding="utf-8")
+    return path
+
+
+def systematic_error(component: int, value: float) -> float:
+    """The fake instrument's smooth error: ±50 µm on positions, ±10″ on angles."""
+    if component < 3:
+        return 50e-6 * np.sin(value / 0.02 + component)
+    return np.radians(10 / 3600) * np.sin(value / 0.005 + component)
+
+
+class FakeCell:
+    """The shared truth and the devices around it."""
+
+    def __init__(self, seed: int = 0, *, truth_log: str | Path | None = None, robot_sigma: float = 5e-6,
+                 angle_sigma: float = 2e-5, move_delay: float = 0.0) -> None:
+        self.rng = np.random.default_rng(seed)
+        self.robot_sigma, self.angle_sigma, self.move_delay = robot_sigma, angle_sigma, move_delay
+        self.lock = threading.Lock()
+        self.opr_in_m = np.zeros(6)
+        self.mount = "robot"
+        self.aligned = None
+        self.snapshots: dict[int, np.ndarray] = {}
+        self.frame_ids = itertools.count(1)
+        self.truth_path = Path(truth_log) if truth_log else None
+        self.protective_stop_on_moves: set[int] = set()
+        self.moves = 0
+        self.fail_grabs = 0
+        self.fail_measures = 0
+        self.log: list[str] = []
+        self.robot = FakeRobot(self)
+        self.cameras = {s: FakeCamera(self, s) for s in "xyz"}
+        self.table = FakeTable(self)
+        self.interferometer = FakeInterferometer(self)
+        self.operator = FakeOperator(self)
+
+    def devices(self) -> dict:
+        return {"robot": self.robot, "rotary_table": self.table, "interferometer": self.interferometer,
+                **{f"camera:{s}": c for s, c in self.cameras.items()}}
+
+    def set_truth(self, pose6: np.ndarray) -> None:
+        with self.lock:
+            self.opr_in_m = np.asarray(pose6, dtype=float)
+        if self.truth_path:
+            tool = matrix_to_euler(euler_to_matrix(self.opr_in_m) @ ur_to_matrix(TOOL_IN_OPR))
+            entry = {"event": "pose", "time": time.time(), "mount": self.mount,
+                     "opr_in_m": {"t": self.opr_in_m[:3].tolist(), "euler": self.opr_in_m[3:].tolist()},
+                     "tool_in_m": {"t": tool[:3].tolist(), "euler": tool[3:].tolist()}}
+            with open(self.truth_path, "a", encoding="utf-8") as handle:
+                handle.write(json.dumps(entry) + "\n")
+
+
+class FakeRobot:
+    name = "robot"
+
+    def __init__(self, cell: FakeCell) -> None:
+        self.cell = cell
+        self.pose = np.array(REFERENCE_TCP, dtype=float)
+        self.protective_stop = False
+        self.stops = 0
+        self.connected = False
+        self.envelope = MotionEnvelope.from_dict(station_dict()["envelope"])
+
+    def connect(self) -> None:
+        self.connected = True
+
+    def close(self) -> None:
+        self.connected = False
+
+    def tcp_pose(self) -> np.ndarray:
+        return self.pose.copy()
+
+    def move_linear(self, pose, speed=0.25, acceleration=1.2, *, asynchronous=False, timeout=None) -> None:
+        self.envelope.check_pose(pose)
+        if self.protective_stop:
+            raise ProtectiveStop("robot", "moveL", "robot is in protective stop")
+        self.cell.moves += 1
+        if self.cell.moves in self.cell.protective_stop_on_moves:
+            self.protective_stop = True
+            raise ProtectiveStop("robot", "moveL", "protective stop during the move (simulated collision)")
+        if self.cell.move_delay:
+            time.sleep(self.cell.move_delay)
+        self.pose = np.asarray(pose, dtype=float)
+        c = self.cell
+        true = matrix_to_euler(tcp_in_m(REFERENCE_TCP, self.pose))
+        true[:3] += c.rng.normal(0, c.robot_sigma, 3)
+        true[3:] += c.rng.normal(0, c.angle_sigma, 3)
+        if c.mount == "robot":
+            c.set_truth(true)
+
+    def stop(self, deceleration: float = 2.0) -> None:
+        self.stops += 1
+
+    def wait_until_steady(self, timeout: float = 10.0) -> None:
+        pass
+
+    def state(self) -> RobotState:
+        return RobotState(connected=self.connected, protective_stop=self.protective_stop, emergency_stop=False,
+                          program_running=True, steady=True)
+
+    def clear_protective_stop(self) -> None:
+        self.protective_stop = False
+
+
+class FakeCamera:
+    def __init__(self, cell: FakeCell, screen: str) -> None:
+        self.cell, self.screen, self.name = cell, screen, f"camera {screen}"
+        self.opened = False
+
+    def open(self) -> None:
+        self.opened = True
+
+    def close(self) -> None:
+        self.opened = False
+
+    def grab(self, timeout: float = 2.0) -> Frame:
+        if self.cell.fail_grabs > 0:
+            self.cell.fail_grabs -= 1
+            raise GrabFailed(self.name, "grab", "incomplete buffer (fake)")
+        frame_id = next(self.cell.frame_ids)
+        with self.cell.lock:
+            self.cell.snapshots[frame_id] = self.cell.opr_in_m.copy()
+        image = np.full((8, 8), frame_id % 256, dtype=np.uint8)
+        return Frame(image=image, timestamp=time.time(), frame_id=frame_id, camera=self.screen, saturation=255)
+
+
+class FakeTable:
+    name = "rotary_table"
+
+    def __init__(self, cell: FakeCell) -> None:
+        self.cell = cell
+        self.angle = 0.0
+        self.homed = False
+        self.stops = 0
+
+    def connect(self) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+    def home(self, timeout: float = 30.0) -> None:
+        self.homed, self.angle = True, 0.0
+
+    def move_absolute(self, angle: float, speed: float | None = None) -> None:
+        self.angle = float(angle)
+        if self.cell.mount.startswith("table:"):
+            k = "xyz".index(self.cell.mount[-1])
+            pose = np.zeros(6)
+            pose[3 + k] = self.angle
+            self.cell.set_truth(pose)
+
+    def wait_in_position(self, timeout: float = 30.0) -> float:
+        return self.angle
+
+    def position(self) -> float:
+        return self.angle + self.cell.rng.normal(0, np.radians(0.1 / 3600))
+
+    def stop(self) -> None:
+        self.stops += 1
+
+    def state(self) -> TableState:
+        return TableState(in_position=True, moving=False, homed=self.homed, fault=None, position=self.angle)
+
+
+class FakeInterferometer:
+    name = "interferometer"
+
+    def __init__(self, cell: FakeCell) -> None:
+        self.cell = cell
+        self.datum = 0.0
+
+    def open(self) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+    def _axis_value(self) -> float:
+        return float(self.cell.opr_in_m["xyz".index(self.cell.aligned or "x")])
+
+    def zero(self) -> None:
+        self.datum = self._axis_value()
+
+    def average(self, duration: float, timeout: float | None = None) -> float:
+        return self._axis_value() - self.datum + self.cell.rng.normal(0, 0.1e-6)
+
+
+class FakeOperator:
+    def __init__(self, cell: FakeCell) -> None:
+        self.cell = cell
+
+    def mount_opr(self, where: str) -> None:
+        self.cell.log.append(f"mount {where}")
+        self.cell.mount = where
+        if where == "robot":
+            self.cell.robot.move_linear(self.cell.robot.pose)  # the truth follows the robot again
+        else:
+            self.cell.table.move_absolute(self.cell.table.angle)
+
+    def align_interferometer(self, axis: str) -> None:
+        self.cell.log.append(f"align {axis}")
+        self.cell.aligned = axis
+
+
+class FakeCompensator:
+    def __init__(self, record: dict) -> None:
+        self.record = record
+        self.record_id = record["record_id"]
+
+    def correct(self, pose):
+        pose = np.array(pose, dtype=float)
+        for name, model in self.record["components"].items():
+            i = COMPONENTS.index(name)
+            pose[i] -= np.polyval(model["poly"], pose[i])
+        return pose, []
+
+
+class FakeScience:
+    """The measurement core's role, on the fake world (spec formulas where the core would compute)."""
+
+    def __init__(self, cell: FakeCell, *, noise: float = 0.3e-6, angle_noise: float = 1e-7) -> None:
+        self.cell, self.noise, self.angle_noise = cell, noise, angle_noise
+        self.rng = np.random.default_rng(1234)
+
+    def configure(self, station) -> None:
+        self.station = station
+
+    def measure(self, frames) -> PoseMeasurement:
+        if self.cell.fail_measures > 0:
+            self.cell.fail_measures -= 1
+            raise MeasurementFailed("screen y: no cross found (fake)")
+        true = self.cell.snapshots[frames["x"].frame_id]
+        pose = np.array([true[i] + systematic_error(i, true[i]) for i in range(6)])
+        pose[:3] += self.rng.normal(0, self.noise, 3)
+        pose[3:] += self.rng.normal(0, self.angle_noise, 3)
+        crosses = {s: {"center_px": [100.0, 100.0], "residual_rms_px": [0.05, 0.05]} for s in frames}
+        return PoseMeasurement(pose=pose, residual_rms=1e-7, crosses=crosses)
+
+    def cube_points(self, center, edge):
+        # ISO 9283 figure: diagonal plane C1-C2-C7-C8; P2..P5 at 10 % of the diagonal from the corners.
+        half = edge / 2
+        corners = np.array([[-half, -half, -half], [half, half, -half], [half, half, half], [-half, -half, half]])
+        points = {"P1": center}
+        for name, corner in zip(("P2", "P3", "P4", "P5"), corners):
+            points[name] = center + 0.8 * corner
+        order = ["P1", "P5", "P4", "P3", "P2"]
+        return order, np.array([points[k] for k in order])
+
+    def visibility_problems(self, opr_in_m):
+        return [] if np.all(np.abs(opr_in_m[:3]) < 0.1) else ["cross off screen (fake)"]
+
+    def fit_rigid_transform(self, source, target):
+        cs, ct = source.mean(axis=0), target.mean(axis=0)
+        u, _, vt = np.linalg.svd((source - cs).T @ (target - ct))
+        d = np.sign(np.linalg.det(vt.T @ u.T))
+        rotation = vt.T @ np.diag([1, 1, d]) @ u.T
+        translation = ct - rotation @ cs
+        rms = float(np.sqrt(np.mean(np.sum((source @ rotation.T + translation - target) ** 2, axis=1))))
+        return rotation, translation, rms
+
+    def iso_statistics(self, poses, commanded):
+        poses = np.asarray(poses)
+        bary = poses.mean(axis=0)
+        l = np.linalg.norm(poses[:, :3] - bary[:3], axis=1)
+        s = poses.std(axis=0, ddof=1)
+        return {"n": len(poses), "rp_l": float(l.mean() + 3 * l.std(ddof=1)), "rp_a": 3 * s[3], "rp_b": 3 * s[4],
+                "rp_c": 3 * s[5], "ap_p": float(np.linalg.norm(bary[:3] - commanded[:3])),
+                "ap_a": bary[3] - commanded[3], "ap_b": bary[4] - commanded[4], "ap_c": bary[5] - commanded[5],
+                "rp_l_ci": [float(l.mean() + 2.5 * l.std(ddof=1)), float(l.mean() + 3.6 * l.std(ddof=1))]}
+
+    def fit_calibration(self, kind, data):
+        components, curves = {}, {}
+        for name, entries in data.items():
+            measured = np.array([e["measured"] for e in entries])
+            reference = np.array([e["reference"] for e in entries])
+            error = measured - reference
+            poly = np.polyfit(measured, error, 7)
+            components[name] = {"poly": poly.tolist(), "range": [float(measured.min()), float(measured.max())]}
+            curves[name] = {"measured": measured.tolist(), "reference": reference.tolist(),
+                            "error_before": error.tolist(),
+                            "error_after": (error - np.polyval(poly, measured)).tolist(),
+                            "group": [e["group"] for e in entries]}
+        body = {"kind": kind, "components": components}
+        text = json.dumps(body, sort_keys=True)
+        body["record_id"] = record_id_of(text)
+        return CalibrationResult(record_json=json.dumps(body), record_id=body["record_id"], curves=curves,
+                                 summary={"model": "polynomial (fake)"})
+
+    def load_compensator(self, path):
+        return FakeCompensator(json.loads(Path(path).read_text()))
+
+
+def main(argv: list[str]) -> int:
+    """Child-process entry for the kill -9 test."""
+    import argparse
+
+    from procedures._api import open_engine
+
+    parser = argparse.ArgumentParser()
+    parser.add_argument("runs_dir")
+    parser.add_argument("station")
+    parser.add_argument("procedure")
+    parser.add_argument("--move-delay", type=float, default=0.0)
+    parser.add_argument("--resume", default=None)
+    args = parser.parse_args(argv)
+    cell = FakeCell(seed=3, move_delay=args.move_delay)
+    with open_engine(args.runs_dir, procedure=args.procedure, station=args.station, run_id=args.resume,
+                     science=FakeScience(cell), devices=cell.devices(), operator=cell.operator) as engine:
+        print(engine.run_id, flush=True)
+        state = engine.execute()
+    print(state, flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
