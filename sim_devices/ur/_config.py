@@ -1,0 +1,84 @@
+"""Settings of the UR controller twin."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, fields
+from typing import Any, Mapping
+
+import numpy as np
+
+
+@dataclass
+class URTwinConfig:
+    """Everything a UR controller twin can be told.
+
+    Attributes
+    ----------
+    seed : int
+        Seeds the repeatability errors (independent of the world's seed streams).
+    time_scale : float
+        Simulated time runs this many times faster than wall time (moves finish sooner).
+    repeatability_translation_std : float
+        σ of the attained position error per base axis, metres (default 10 µm).
+    repeatability_rotation_std : float
+        σ of the attained orientation error per base axis, radians (default 0.001°).
+    approach_bias : float
+        Systematic position offset along the unit approach direction of the last move, metres
+        (a backlash-like overshoot; the same for every visit from the same side).
+    thermal_drift_amplitude, thermal_drift_time_constant : float
+        Warm-up drift ``A (1 − exp(−t/τ))`` along a seeded base direction, metres and simulated s.
+    tcp_offset : list of 6 floats
+        TCP offset at power-up (UR pose in the flange frame).
+    version : (major, minor, bugfix, build)
+        What the controller reports over RTDE and the dashboard.
+    serial_number : str
+        Digits, answered to ``get serial number``.
+    remote_control : bool
+        Answer to ``is in remote control`` (the client refuses to connect to a non-loopback
+        address that is not in remote control).
+    control_period : float
+        Wall seconds between controller ticks (motion sampling, fault checks).
+    world_publish_period : float
+        Wall seconds between intermediate (not settled) flange poses sent to the world.
+    max_stream_rate : float or None
+        Cap on the RTDE output frequency in Hz (None: honour what the client asks for).
+    stop_deceleration : float
+        Path deceleration of a protective or emergency stop (m/s² or rad/s²).
+    """
+
+    seed: int = 0
+    time_scale: float = 1.0
+    repeatability_translation_std: float = 10e-6
+    repeatability_rotation_std: float = float(np.radians(0.001))
+    approach_bias: float = 3e-6
+    thermal_drift_amplitude: float = 15e-6
+    thermal_drift_time_constant: float = 1200.0
+    tcp_offset: list[float] = field(default_factory=lambda: [0.0] * 6)
+    version: tuple[int, int, int, int] = (5, 15, 0, 0)
+    serial_number: str = "20235500123"
+    remote_control: bool = True
+    control_period: float = 0.004
+    world_publish_period: float = 0.02
+    max_stream_rate: float | None = None
+    stop_deceleration: float = 10.0
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any] | None) -> "URTwinConfig":
+        data = dict(data or {})
+        known = {f.name for f in fields(cls)}
+        unknown = set(data) - known
+        if unknown:
+            raise ValueError(f"UR twin config: unknown field(s) {sorted(unknown)}; expected some of {sorted(known)}")
+        if "version" in data:
+            data["version"] = tuple(int(v) for v in data["version"])
+        if "tcp_offset" in data:
+            data["tcp_offset"] = [float(v) for v in data["tcp_offset"]]
+        config = cls(**data)
+        if not config.time_scale > 0:
+            raise ValueError(f"UR twin config: time_scale must be > 0, got {config.time_scale}")
+        if not str(config.serial_number).isdigit():
+            raise ValueError("UR twin config: serial_number must be digits")
+        return config
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)

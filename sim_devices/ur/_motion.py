@@ -1,0 +1,126 @@
+"""Trapezoidal point-to-point motions in simulated time: ``movel`` (Cartesian line + slerp) and
+``movej`` (synchronised joint interpolation), with a deceleration stop that can cut any motion short.
+
+A motion is a path ``x(s)``, ``s ∈ [0, L]``, driven by a 1-D velocity profile ``s(t)``. ``L`` is the
+TCP travel in metres for ``movel`` (or the rotation angle in radians when the TCP only turns, as a UR
+controller does) and the largest joint travel in radians for ``movej``; speeds and accelerations are
+in the same units.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from sim_devices._transforms import make_transform, matrix_to_rotvec, rotvec_to_matrix
+from sim_devices.ur import _kinematics as kin
+
+
+@dataclass
+class Profile:
+    """Trapezoidal (or triangular) profile from rest to rest, or a pure deceleration from ``v0``."""
+
+    t0: float
+    s0: float
+    length: float  # distance still to travel from s0
+    v0: float
+    v_peak: float
+    accel: float  # acceleration of the ramp up (unused when decelerating from v0)
+    decel: float
+    t_acc: float
+    t_flat: float
+    t_dec: float
+
+    @classmethod
+    def rest_to_rest(cls, t0: float, length: float, speed: float, accel: float) -> "Profile":
+        length = max(length, 0.0)
+        speed, accel = max(speed, 1e-9), max(accel, 1e-9)
+        if length * accel < speed * speed:  # triangular: never reaches the speed
+            v_peak = math.sqrt(length * accel)
+            t_acc = v_peak / accel
+            return cls(t0, 0.0, length, 0.0, v_peak, accel, accel, t_acc, 0.0, t_acc)
+        t_acc = speed / accel
+        t_flat = (length - speed * t_acc) / speed
+        return cls(t0, 0.0, length, 0.0, speed, accel, accel, t_acc, t_flat, t_acc)
+
+    @classmethod
+    def stopping(cls, t0: float, s0: float, v0: float, decel: float) -> "Profile":
+        decel = max(decel, 1e-9)
+        t_dec = max(v0, 0.0) / decel
+        return cls(t0, s0, 0.5 * max(v0, 0.0) * t_dec, v0, v0, decel, decel, 0.0, 0.0, t_dec)
+
+    @property
+    def t_end(self) -> float:
+        return self.t0 + self.t_acc + self.t_flat + self.t_dec
+
+    def at(self, t: float) -> tuple[float, float]:
+        """Path position and speed at simulated time ``t``."""
+        tau = min(max(t - self.t0, 0.0), self.t_acc + self.t_flat + self.t_dec)
+        if tau < self.t_acc:
+            return self.s0 + 0.5 * self.accel * tau * tau, self.accel * tau
+        s = self.s0 + 0.5 * self.accel * self.t_acc**2 if self.t_acc else self.s0
+        tau -= self.t_acc
+        if tau < self.t_flat:
+            return s + self.v_peak * tau, self.v_peak
+        s += self.v_peak * self.t_flat
+        tau -= self.t_flat
+        return s + self.v_peak * tau - 0.5 * self.decel * tau * tau, max(self.v_peak - self.decel * tau, 0.0)
+
+
+class Motion:
+    """A running move. ``sample(t)`` gives the commanded joints and TCP pose at simulated time ``t``."""
+
+    def __init__(self, kind: str, t0: float, q_start: np.ndarray, tcp_offset: np.ndarray, *, speed: float,
+                 accel: float, target_q: np.ndarray | None = None, target_pose: np.ndarray | None = None) -> None:
+        self.kind = kind  # "linear" or "joint"
+        self.tcp_offset = np.asarray(tcp_offset, dtype=float).copy()
+        self.q_start = np.asarray(q_start, dtype=float).copy()
+        self.start_pose = kin.forward(self.q_start, self.tcp_offset)
+        self.stopped = False
+        self._q_last = self.q_start.copy()
+        if kind == "joint":
+            self.target_q = np.asarray(target_q, dtype=float).copy()
+            self.target_pose = kin.forward(self.target_q, self.tcp_offset)
+            self.length = float(np.max(np.abs(self.target_q - self.q_start)))
+        else:
+            self.target_pose = np.asarray(target_pose, dtype=float).copy()
+            # Reachability is checked before the move starts; the end joints keep the start branch.
+            self.target_q = kin.inverse(self.target_pose, self.q_start, self.tcp_offset)
+            self._dp = self.target_pose[:3, 3] - self.start_pose[:3, 3]
+            self._drot = matrix_to_rotvec(self.target_pose[:3, :3] @ self.start_pose[:3, :3].T)
+            translation, rotation = float(np.linalg.norm(self._dp)), float(np.linalg.norm(self._drot))
+            self.length = translation if translation > 1e-7 else rotation
+        self.profile = Profile.rest_to_rest(t0, self.length, speed, accel)
+
+    @property
+    def t_end(self) -> float:
+        return self.profile.t_end
+
+    def fraction(self, t: float) -> float:
+        s, _ = self.profile.at(t)
+        return 1.0 if self.length <= 0 else min(s / self.length, 1.0)
+
+    def speed(self, t: float) -> float:
+        return self.profile.at(t)[1]
+
+    def stop(self, t: float, decel: float) -> None:
+        """Cut the motion short: decelerate from the current path speed at ``decel``."""
+        s, v = self.profile.at(t)
+        self.profile = Profile.stopping(t, s, v, decel)
+        self.stopped = True
+
+    def sample(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """(joints, TCP pose 4×4) commanded at ``t``."""
+        u = self.fraction(t)
+        if self.kind == "joint":
+            q = self.q_start + u * (self.target_q - self.q_start)
+            return q, kin.forward(q, self.tcp_offset)
+        if u >= 1.0:
+            self._q_last = self.target_q.copy()
+            return self._q_last, self.target_pose.copy()
+        rotation = rotvec_to_matrix(u * self._drot) @ self.start_pose[:3, :3]
+        pose = make_transform(rotation, self.start_pose[:3, 3] + u * self._dp)
+        self._q_last = kin.inverse(pose, self._q_last, self.tcp_offset, tolerance=1e-11)
+        return self._q_last, pose
