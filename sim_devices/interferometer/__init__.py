@@ -1,0 +1,18 @@
+"""Twin of the laser interferometer displacement feed (1 kHz over CAN: socketcand and slcan).
+
+See ``docs/interferometer.md``. ``InterferometerTwin(world, config)`` embeds in a cell;
+``StandaloneInterferometerHost`` runs on its own world in a ``TwinProcess``.
+"""
+
+from sim_devices.interferometer._config import InterferometerTwinConfig
+from sim_devices.interferometer._head import HeadReading, InterferometerHead
+from sim_devices.interferometer._host import InterferometerTwin, StandaloneInterferometerHost, move_opr
+
+__all__ = [
+    "HeadReading",
+    "InterferometerHead",
+    "InterferometerTwin",
+    "InterferometerTwinConfig",
+    "StandaloneInterferometerHost",
+    "move_opr",
+]

@@ -1,0 +1,206 @@
+"""The head's firmware: a 1 kHz sample clock that reads the head, frames the samples, answers
+commands and takes faults from the ``FaultPlan``, sending everything to its transports.
+
+Commands received by a transport are queued and executed by the clock thread just before the next
+sample, and the reply is sent before that sample: every displacement frame after a datum reply is
+relative to the new datum.
+
+Faults (``FaultKind``, params with defaults; a fault armed with ``count=-1`` fires at every tick
+until cleared):
+
+- ``beam_break`` [seconds=0.2]: the beam is blocked; samples say beam not OK, the count is lost
+  (datum not set until the host sends a new datum).
+- ``stall`` [seconds=0.5]: the head stops producing frames (its counter stops too).
+- ``drop_reply`` [frames=5]: the next frames are produced but never sent (a counter gap).
+- ``bad_crc`` [frames=1]: the next frames carry a wrong CRC.
+- ``garbage`` [size=16]: bytes that are not protocol text on every transport (socketcand:
+  non-ASCII; slcan: junk ended by CR).
+- ``disconnect`` [seconds=0.0 for socketcand, 0.2 for slcan; transport=None (all)]: socketcand
+  closes every client connection and refuses new ones for ``seconds``; slcan unplugs the pty and
+  re-plugs a fresh one at the same path after ``seconds``.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+import time
+from typing import Protocol
+
+from sim_devices.faults import FaultKind, FaultPlan
+from sim_devices.interferometer import _frames
+from sim_devices.interferometer._config import InterferometerTwinConfig
+from sim_devices.interferometer._head import InterferometerHead
+
+FEED_FAULTS = (FaultKind.BEAM_BREAK, FaultKind.STALL, FaultKind.DROP_REPLY, FaultKind.BAD_CRC,
+               FaultKind.GARBAGE, FaultKind.DISCONNECT)
+
+
+class Transport(Protocol):
+    def send_frame(self, can_id: int, data: bytes, timestamp: float) -> None: ...
+
+    def send_garbage(self, junk: bytes) -> None: ...
+
+    def disconnect(self, seconds: float) -> None: ...
+
+
+class InterferometerDevice:
+    def __init__(self, head: InterferometerHead, config: InterferometerTwinConfig, faults: FaultPlan,
+                 junk_rng) -> None:
+        self.head = head
+        self.config = config
+        self.layout = config.layout
+        self.faults = faults
+        self._junk_rng = junk_rng
+        self.transports: dict[str, Transport] = {}
+        self._commands: queue.SimpleQueue[tuple[int, bytes]] = queue.SimpleQueue()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._stats_lock = threading.Lock()
+        self.stats = dict.fromkeys(("produced", "sent", "dropped", "bad_crc", "garbage", "late_skipped",
+                                    "stalled_ticks", "commands", "disconnects"), 0)
+        self._drop_frames = 0
+        self._bad_crc_frames = 0
+        self._stall_until = 0.0
+        self._counter = 0
+        self._heartbeat = 0
+
+    # ------------------------------------------------------------------------------ lifecycle
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name="interferometer head clock", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(5.0)
+            self._thread = None
+
+    def on_command(self, can_id: int, data: bytes) -> None:
+        """Called by a transport for every frame the host puts on the bus."""
+        if can_id == self.layout.command_id:
+            self._commands.put((can_id, bytes(data)))
+
+    # ------------------------------------------------------------------------------ clock thread
+    def _run(self) -> None:
+        period = 1.0 / self.layout.sample_rate
+        status_every = max(1, round(self.layout.sample_rate / self.layout.status_rate))
+        origin_mono, origin_epoch = time.monotonic(), time.time()
+        tick = 0
+        while not self._stop.is_set():
+            due = origin_mono + tick * period
+            now = time.monotonic()
+            if due > now:
+                time.sleep(min(due - now, 0.002))
+                continue
+            if now - due > self.config.max_catch_up:  # far behind (host starved): these samples are lost
+                skipped = int((now - due) / period)
+                tick += skipped
+                self._counter = (self._counter + skipped) & 0xFF
+                self._count("late_skipped", skipped)
+                continue
+            self._execute_commands(origin_epoch + tick * period)
+            self._take_faults(now)
+            if now < self._stall_until:
+                self._count("stalled_ticks")
+                tick += 1
+                continue
+            self._sample(now, origin_epoch + tick * period)
+            if tick % status_every == 0:
+                self._send_status(now, origin_epoch + tick * period)
+            tick += 1
+
+    def _sample(self, now: float, stamp: float) -> None:
+        reading = self.head.read(now)
+        status = 0
+        counts = round(reading.displacement / self.layout.resolution)
+        if reading.beam_ok:
+            status |= _frames.BEAM_OK
+        if reading.signal < self.config.low_signal:
+            status |= _frames.SIGNAL_LOW
+        if reading.datum_set:
+            status |= _frames.DATUM_SET
+        if abs(counts) > _frames.INT40_MAX:
+            status |= _frames.OVERRANGE
+        data = _frames.displacement_frame(self.layout.displacement_id, counts, self._counter, status, reading.signal)
+        self._counter = (self._counter + 1) & 0xFF
+        self._count("produced")
+        if self._drop_frames > 0:
+            self._drop_frames -= 1
+            self._count("dropped")
+            return
+        if self._bad_crc_frames > 0:
+            self._bad_crc_frames -= 1
+            data = data[:7] + bytes([data[7] ^ 0xA5])
+            self._count("bad_crc")
+        self._broadcast(self.layout.displacement_id, data, stamp)
+        self._count("sent")
+
+    def _send_status(self, now: float, stamp: float) -> None:
+        beam_ok, datum_set, signal = self.head.status(now)
+        status = (_frames.BEAM_OK if beam_ok else 0) | (_frames.DATUM_SET if datum_set else 0)
+        if signal < self.config.low_signal:
+            status |= _frames.SIGNAL_LOW
+        data = _frames.status_frame(self.layout.status_id, status, signal, self.head.axis,
+                                    self.head.datum_generation, self._heartbeat)
+        self._heartbeat = (self._heartbeat + 1) & 0xFF
+        self._broadcast(self.layout.status_id, data, stamp)
+
+    def _execute_commands(self, stamp: float) -> None:
+        while True:
+            try:
+                can_id, data = self._commands.get_nowait()
+            except queue.Empty:
+                return
+            parsed = _frames.parse_command(can_id, data)
+            if parsed is None:
+                continue  # a corrupted command is ignored; the host times out and may retry
+            opcode, token = parsed
+            self._count("commands")
+            if opcode == _frames.OPCODE_DATUM:
+                result = 0 if self.head.set_datum() else 1
+            else:
+                result = 2  # unknown opcode
+            reply = _frames.reply_frame(self.layout.reply_id, opcode, token, result, self.head.datum_generation)
+            self._broadcast(self.layout.reply_id, reply, stamp)
+
+    def _take_faults(self, now: float) -> None:
+        plan = self.faults
+        if not plan.armed():  # cheap test first: the clock runs at 1 kHz
+            return
+        if fault := plan.take(FaultKind.BEAM_BREAK):
+            self.head.block_beam(now + float(fault.params.get("seconds", 0.2)))
+        if fault := plan.take(FaultKind.STALL):
+            self._stall_until = max(self._stall_until, now + float(fault.params.get("seconds", 0.5)))
+        if fault := plan.take(FaultKind.DROP_REPLY):
+            self._drop_frames += int(fault.params.get("frames", 5))
+        if fault := plan.take(FaultKind.BAD_CRC):
+            self._bad_crc_frames += int(fault.params.get("frames", 1))
+        if fault := plan.take(FaultKind.GARBAGE):
+            self._send_garbage(int(fault.params.get("size", 16)))
+        if fault := plan.take(FaultKind.DISCONNECT):
+            wanted = fault.params.get("transport")
+            for name, transport in self.transports.items():
+                if wanted in (None, name):
+                    default = 0.0 if name == "socketcand" else 0.2
+                    transport.disconnect(float(fault.params.get("seconds", default)))
+            self._count("disconnects")
+
+    def _send_garbage(self, size: int) -> None:
+        junk = self._junk_rng.integers(0x80, 0x100, max(1, size), dtype=int).astype("uint8").tobytes()
+        for name, transport in self.transports.items():
+            # socketcand: bytes that are not ASCII; slcan: the same, ended by CR like a frame line.
+            transport.send_garbage(junk if name == "socketcand" else junk + b"\r")
+        self._count("garbage")
+
+    def _broadcast(self, can_id: int, data: bytes, stamp: float) -> None:
+        for transport in self.transports.values():
+            transport.send_frame(can_id, data, stamp)
+
+    def _count(self, key: str, amount: int = 1) -> None:
+        with self._stats_lock:
+            self.stats[key] += amount
+
+    def snapshot(self) -> dict:
+        with self._stats_lock:
+            return dict(self.stats)

@@ -1,0 +1,179 @@
+"""Host objects: ``InterferometerTwin`` (embedded in a cell sharing its ``World``) and
+``StandaloneInterferometerHost`` (its own world, for ``TwinProcess``)."""
+
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+import numpy as np
+
+from sim_devices.faults import FaultKind, FaultPlan
+from sim_devices.interferometer._config import InterferometerTwinConfig
+from sim_devices.interferometer._device import InterferometerDevice
+from sim_devices.interferometer._head import InterferometerHead
+from sim_devices.interferometer._slcan import SlcanPort
+from sim_devices.interferometer._socketcand import SocketcandServer
+from sim_devices.world import World, WorldConfig
+
+
+class InterferometerTwin:
+    """The laser interferometer twin: head physics on ``world``, a 1 kHz CAN feed served by a
+    socketcand daemon (TCP on loopback) and an slcan adapter (pty), fault injection.
+
+    Parameters
+    ----------
+    world : World
+        The shared truth; the head measures the OPR origin's motion along its beam.
+    config : mapping or InterferometerTwinConfig, optional
+        See ``InterferometerTwinConfig``.
+
+    ``start()`` returns the endpoints::
+
+        {"socketcand": {"host", "port", "channel"}, "slcan": {"port"}, "layout": {...}}
+
+    ``control(command, **kw)``: ``align`` (axis), ``arm`` (kind, count=1, **params), ``clear``
+    (kinds=[] → all), ``truth``, ``stats``, ``fired``, ``endpoints``, ``station_entry``
+    (transport="socketcand"). ``faults`` is the twin's ``FaultPlan`` for in-process use.
+    """
+
+    def __init__(self, world: World, config: Mapping[str, Any] | InterferometerTwinConfig | None = None) -> None:
+        self.world = world
+        self.config = InterferometerTwinConfig.from_dict(config)
+        self.faults = FaultPlan()
+        self.head: InterferometerHead | None = None
+        self.device: InterferometerDevice | None = None
+        self._socketcand: SocketcandServer | None = None
+        self._slcan: SlcanPort | None = None
+        self.endpoints: dict[str, Any] = {}
+
+    # ------------------------------------------------------------------------------ lifecycle
+    def start(self) -> dict[str, Any]:
+        config = self.config
+        try:
+            self.head = InterferometerHead(self.world, config)
+            self.device = InterferometerDevice(self.head, config, self.faults, self.world.rng("interferometer junk"))
+            self.endpoints = {"layout": config.layout.to_dict()}
+            if config.socketcand:
+                self._socketcand = SocketcandServer(config.host, config.port, config.channel, self.device.on_command,
+                                                    config.first_frame_pause)
+                self.endpoints["socketcand"] = self._socketcand.start()
+                self.device.transports["socketcand"] = self._socketcand
+            if config.slcan:
+                self._slcan = SlcanPort(self.device.on_command)
+                self.endpoints["slcan"] = self._slcan.start()
+                self.device.transports["slcan"] = self._slcan
+            self.device.start()
+        except BaseException:
+            self.stop()
+            raise
+        return self.endpoints
+
+    def stop(self) -> None:
+        if self.device is not None:
+            self.device.stop()
+        for transport in (self._socketcand, self._slcan):
+            if transport is not None:
+                transport.stop()
+        self._socketcand = self._slcan = None
+        if self.head is not None:
+            self.head.close()
+        self.device = self.head = None
+
+    def __enter__(self) -> "InterferometerTwin":
+        self.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    # ------------------------------------------------------------------------------ control API
+    def align(self, axis: str) -> dict[str, Any]:
+        """The operator re-aims the head along M's ``axis`` (the count is lost: zero() again)."""
+        self._require_running()
+        truth = self.head.align(axis)
+        self.world.truth.record("interferometer_align", time=self.world.clock(), **truth)
+        return truth
+
+    def truth(self) -> dict[str, Any]:
+        self._require_running()
+        return self.head.truth()
+
+    def station_entry(self, transport: str = "socketcand") -> dict[str, Any]:
+        """The ``devices.interferometer`` entry of a station file for this twin."""
+        if transport == "socketcand" and "socketcand" in self.endpoints:
+            return {"adapter": "socketcand", **self.endpoints["socketcand"]}
+        if transport == "slcan" and "slcan" in self.endpoints:
+            return {"adapter": "slcan", "port": self.endpoints["slcan"]["port"]}
+        raise ValueError(f"interferometer twin: transport {transport!r} is not running")
+
+    def control(self, command: str, **kwargs: Any) -> Any:
+        if command == "align":
+            return self.align(kwargs["axis"])
+        if command == "arm":
+            kind = FaultKind(kwargs.pop("kind"))
+            self.faults.arm(kind, int(kwargs.pop("count", 1)), **kwargs)
+            return [a.kind.value for a in self.faults.armed()]
+        if command == "clear":
+            self.faults.clear(*kwargs.get("kinds", ()))
+            return [a.kind.value for a in self.faults.armed()]
+        if command == "fired":
+            return [[kind.value, params] for kind, params in self.faults.fired()]
+        if command == "truth":
+            return self.truth()
+        if command == "stats":
+            self._require_running()
+            stats = self.device.snapshot()
+            stats["slcan_overflows"] = self._slcan.overflows if self._slcan else 0
+            stats["socketcand_connections"] = self._socketcand.connections if self._socketcand else 0
+            return stats
+        if command == "endpoints":
+            return self.endpoints
+        if command == "station_entry":
+            return self.station_entry(kwargs.get("transport", "socketcand"))
+        raise ValueError(f"interferometer twin: unknown control command {command!r}; expected align, arm, clear, "
+                         "fired, truth, stats, endpoints, station_entry")
+
+    def _require_running(self) -> None:
+        if self.head is None or self.device is None:
+            raise RuntimeError("interferometer twin is not running (call start())")
+
+
+class StandaloneInterferometerHost:
+    """An ``InterferometerTwin`` with a world of its own, for ``TwinProcess``
+    (``"sim_devices.interferometer:StandaloneInterferometerHost"``).
+
+    Adds control commands to move the world: ``set_flange_pose`` (pose: 6 values or 4×4),
+    ``move_opr`` (delta: 3 values, metres in M: translates the OPR without rotating it),
+    ``opr_in_m`` (4×4 as nested lists).
+    """
+
+    def __init__(self, seed: int = 0, config: Mapping[str, Any] | None = None) -> None:
+        self.world = World(WorldConfig(seed=int(seed)))
+        self.twin = InterferometerTwin(self.world, config)
+
+    def start(self) -> dict[str, Any]:
+        return self.twin.start()
+
+    def stop(self) -> None:
+        self.twin.stop()
+        self.world.truth.close()
+
+    def control(self, command: str, **kwargs: Any) -> Any:
+        if command == "set_flange_pose":
+            self.world.set_flange_pose(np.asarray(kwargs["pose"], dtype=float))
+            return self.world.opr_in_m().tolist()
+        if command == "move_opr":
+            move_opr(self.world, kwargs["delta"])
+            return self.world.opr_in_m().tolist()
+        if command == "opr_in_m":
+            return self.world.opr_in_m().tolist()
+        return self.twin.control(command, **kwargs)
+
+
+def move_opr(world: World, delta_in_m) -> None:
+    """Translate the OPR by ``delta_in_m`` (metres, in M) by moving the flange (OPR on the robot)."""
+    shift = np.eye(4)
+    shift[:3, 3] = np.asarray(delta_in_m, dtype=float)
+    # T_B_F' = T_B_M · shift · T_M_B · T_B_F moves the OPR by ``shift`` expressed in M.
+    base_to_m = world.base_to_m
+    world.set_flange_pose(base_to_m @ shift @ np.linalg.inv(base_to_m) @ world.flange_pose(), source="test")
