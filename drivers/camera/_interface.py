@@ -71,3 +71,14 @@ class Camera(Protocol):
     ) -> None: ...
 
     def grab(self, timeout: float = 2.0) -> Frame: ...
+
+
+@runtime_checkable
+class TriggeredCamera(Camera, Protocol):
+    """A camera that can be triggered and read in two steps, so that several cameras expose
+    together (``CameraTriplet``): ``trigger()`` starts an exposure now, ``retrieve(timeout)``
+    returns that exposure's frame (one attempt, no retry) or raises."""
+
+    def trigger(self) -> None: ...
+
+    def retrieve(self, timeout: float = 2.0) -> Frame: ...

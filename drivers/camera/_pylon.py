@@ -1,0 +1,342 @@
+"""``PylonCamera``: Basler GigE/USB3 cameras (and the pylon camera emulator) through pypylon.
+
+Station-file settings (``create({"adapter": "pylon", ...}, name=...)``)
+-----------------------------------------------------------------------
+serial : str
+    The camera's serial number (emulated cameras are ``0815-0000``, ``0815-0001`` …).
+emulator_image : path, optional
+    Serve this image file from an emulated camera: sets ``PYLON_CAMEMU=3`` (if not already set
+    higher) before pypylon's first device enumeration, then ``TestImageSelector = Off``,
+    ``ImageFileMode = On``, ``ImageFilename = <path>``. The emulator (pypylon 26.9) loads
+    the file when acquisition starts, not at every grab; so before each trigger the adapter
+    compares the file's (inode, mtime, size) with the one it loaded and restarts acquisition when
+    the file was replaced (≈ 6 ms). A twin that replaces the file atomically therefore changes the
+    next frame.
+exposure_s, gain_db : float, optional
+    ``ExposureTime`` (µs on the camera) or ``ExposureTimeAbs``; ``Gain`` in dB.
+pixel_format : str, optional
+    ``Mono8`` (default on the emulator), ``Mono10``, ``Mono12``, ``Mono16``.
+roi : mapping {offset_x, offset_y, width, height}, optional
+software_trigger : bool, default True
+    Each ``grab`` drains stale buffers, fires ``TriggerSoftware`` and waits for that exposure's
+    frame: a frame is never older than the ``grab`` call. With ``False`` the camera free-runs and
+    ``grab`` returns the next frame that arrives after the stale ones were drained.
+trigger_source : str, optional
+    ``"Software"`` (default with ``software_trigger``) or a hardware line (``"Line1"``): then
+    ``grab`` only waits for the externally triggered frame.
+retries : int, default 2
+    Extra attempts after an incomplete buffer or a timeout, before the typed error is raised.
+timeout_s : float, default 2.0
+    Default grab timeout.
+
+Errors: a camera that is not found or vanishes → ``DeviceConnectionError``; a frame that does not
+come → ``DeviceTimeout``; an incomplete buffer → ``GrabFailed``. ``grab`` never returns None.
+Host timestamps (``time.time()`` at retrieval): the emulator's ``TimeStamp`` is always 0.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from drivers._errors import DeviceConnectionError, DeviceError, DeviceTimeout
+from drivers.camera._interface import Frame, GrabFailed, Roi
+
+SATURATION = {"Mono8": 255, "Mono10": 1023, "Mono10p": 1023, "Mono12": 4095, "Mono12p": 4095,
+              "Mono12Packed": 4095, "Mono16": 65535}
+_EMULATED_CAMERAS = 3
+
+
+def _pylon():
+    """Import pypylon lazily, so that importing ``drivers`` never needs the pylon runtime."""
+    try:
+        from pypylon import genicam, pylon
+    except ImportError as error:  # pragma: no cover - pypylon is a declared dependency
+        raise DeviceConnectionError("pylon", "import pypylon", f"pypylon is not installed ({error})") from None
+    return pylon, genicam
+
+
+def ensure_emulated_cameras(count: int = _EMULATED_CAMERAS) -> None:
+    """Ask the pylon runtime for ``count`` emulated cameras (read at device enumeration)."""
+    try:
+        current = int(os.environ.get("PYLON_CAMEMU", "0"))
+    except ValueError:
+        current = 0
+    if current < count:
+        os.environ["PYLON_CAMEMU"] = str(count)
+
+
+class PylonCamera:
+    """One Basler camera selected by serial number; see the module docstring for the settings."""
+
+    def __init__(
+        self,
+        *,
+        serial: str,
+        name: str | None = None,
+        emulator_image: str | os.PathLike | None = None,
+        exposure_s: float | None = None,
+        gain_db: float | None = None,
+        pixel_format: str | None = None,
+        roi: Roi | Mapping[str, int] | None = None,
+        software_trigger: bool = True,
+        trigger_source: str | None = None,
+        retries: int = 2,
+        timeout_s: float = 2.0,
+    ) -> None:
+        if not serial:
+            raise ValueError("pylon camera: 'serial' is required")
+        if retries < 0:
+            raise ValueError(f"pylon camera: retries must be ≥ 0, got {retries}")
+        self.serial = str(serial)
+        self.name = name or self.serial
+        self.emulator_image = Path(emulator_image) if emulator_image else None
+        self.retries = int(retries)
+        self.timeout_s = float(timeout_s)
+        self._settings: dict[str, Any] = {
+            "exposure_s": exposure_s,
+            "gain_db": gain_db,
+            "pixel_format": pixel_format,
+            "roi": _as_roi(roi),
+            "software_trigger": bool(software_trigger),
+        }
+        self.trigger_source = trigger_source or ("Software" if software_trigger else None)
+        self._camera: Any = None
+        self._frame_id = 0
+        self._loaded_image: tuple[int, int, int] | None = None  # stat of the emulator file in use
+        self._device = f"camera {self.name} ({self.serial})"
+
+    # ------------------------------------------------------------------ lifecycle
+    def open(self) -> None:
+        if self._camera is not None:
+            return
+        if self.emulator_image is not None:
+            if not self.emulator_image.is_file():
+                raise DeviceConnectionError(self._device, "open", f"emulator image {self.emulator_image} does not exist")
+            ensure_emulated_cameras()
+        pylon, genicam = _pylon()
+        factory = pylon.TlFactory.GetInstance()
+        try:
+            devices = factory.EnumerateDevices()
+        except genicam.GenericException as error:
+            raise DeviceConnectionError(self._device, "enumerate cameras", str(error).split(" : ")[0]) from None
+        matches = [d for d in devices if d.GetSerialNumber() == self.serial]
+        if not matches:
+            found = ", ".join(sorted(d.GetSerialNumber() for d in devices)) or "none"
+            raise DeviceConnectionError(self._device, "open", f"no camera with serial {self.serial} (found: {found})")
+        try:
+            camera = pylon.InstantCamera(factory.CreateDevice(matches[0]))
+            camera.Open()
+        except genicam.GenericException as error:
+            raise DeviceConnectionError(self._device, "open", str(error).split(" : ")[0]) from None
+        self._camera = camera
+        try:
+            if self.emulator_image is not None:
+                self._set("TestImageSelector", "Off")
+                self._set("ImageFileMode", "On")
+                self._set("ImageFilename", str(self.emulator_image.resolve()))
+            self._apply(self._settings)
+            self._start()
+        except BaseException:
+            self.close()
+            raise
+
+    def close(self) -> None:
+        camera, self._camera = self._camera, None
+        if camera is None:
+            return
+        _, genicam = _pylon()
+        try:
+            if camera.IsGrabbing():
+                camera.StopGrabbing()
+            camera.Close()
+            camera.DestroyDevice()
+        except genicam.GenericException:
+            pass  # a vanished camera cannot be closed more than it already is
+
+    def __enter__(self) -> "PylonCamera":
+        self.open()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    @property
+    def is_open(self) -> bool:
+        return self._camera is not None
+
+    # ------------------------------------------------------------------ settings
+    def configure(self, *, exposure_s: float | None = None, gain_db: float | None = None,
+                  pixel_format: str | None = None, roi: Roi | None = None,
+                  software_trigger: bool | None = None) -> None:
+        """Change settings; applied now when open (grabbing is paused around the change)."""
+        changes = {k: v for k, v in {"exposure_s": exposure_s, "gain_db": gain_db, "pixel_format": pixel_format,
+                                     "roi": _as_roi(roi), "software_trigger": software_trigger}.items() if v is not None}
+        self._settings.update(changes)
+        if "software_trigger" in changes:
+            self.trigger_source = "Software" if software_trigger else None
+        if self._camera is None:
+            return
+        camera = self._camera
+        was_grabbing = camera.IsGrabbing()
+        if was_grabbing:
+            camera.StopGrabbing()
+        self._apply(changes)
+        if was_grabbing or "software_trigger" in changes:
+            self._start()
+
+    def _apply(self, settings: Mapping[str, Any]) -> None:
+        if settings.get("pixel_format") is not None:
+            self._set("PixelFormat", settings["pixel_format"])
+        if settings.get("roi") is not None:
+            roi: Roi = settings["roi"]
+            self._set("OffsetX", 0)
+            self._set("OffsetY", 0)
+            self._set("Width", roi.width)
+            self._set("Height", roi.height)
+            self._set("OffsetX", roi.offset_x)
+            self._set("OffsetY", roi.offset_y)
+        if settings.get("exposure_s") is not None:
+            microseconds = float(settings["exposure_s"]) * 1e6
+            self._set_first(("ExposureTime", "ExposureTimeAbs"), microseconds, "exposure")
+        if settings.get("gain_db") is not None:
+            self._set_first(("Gain", "GainAbs"), float(settings["gain_db"]), "gain in dB")
+        self._set("TriggerSelector", "FrameStart", required=False)
+        if self.trigger_source:
+            self._set("TriggerMode", "On")
+            self._set("TriggerSource", self.trigger_source)
+        else:
+            self._set("TriggerMode", "Off")
+
+    def _start(self) -> None:
+        pylon, genicam = _pylon()
+        if self.emulator_image is not None:
+            self._loaded_image = self._image_stamp()  # stat before the emulator reads the file
+        try:
+            self._camera.StartGrabbing(pylon.GrabStrategy_OneByOne)
+        except genicam.GenericException as error:
+            raise self._lost_or(DeviceError, "start grabbing", error) from None
+
+    def _node(self, name: str):
+        return self._camera.GetNodeMap().GetNode(name)
+
+    def _set(self, name: str, value: Any, *, required: bool = True) -> None:
+        _, genicam = _pylon()
+        node = self._node(name)
+        if node is None or not genicam.IsWritable(node):
+            if required:
+                raise DeviceError(self._device, f"set {name}", f"the camera has no writable {name}")
+            return
+        try:
+            node.SetValue(value)
+        except genicam.GenericException as error:
+            raise DeviceError(self._device, f"set {name} = {value!r}", str(error).split(" : ")[0]) from None
+
+    def _set_first(self, names: tuple[str, ...], value: Any, what: str) -> None:
+        _, genicam = _pylon()
+        for name in names:
+            node = self._node(name)
+            if node is not None and genicam.IsWritable(node):
+                self._set(name, value)
+                return
+        raise DeviceError(self._device, f"set {what}", f"the camera has none of {', '.join(names)}")
+
+    # ------------------------------------------------------------------ grabbing
+    def trigger(self) -> None:
+        """Drop stale frames, then fire the software trigger (nothing to do for hardware triggers)."""
+        camera = self._require_open("trigger")
+        pylon, genicam = _pylon()
+        try:
+            if self.emulator_image is not None and self._image_stamp() != self._loaded_image:
+                camera.StopGrabbing()  # the emulator reads its image file only when acquisition starts
+                self._start()
+            for _ in range(64):  # drain frames exposed before this call
+                stale = camera.RetrieveResult(0, pylon.TimeoutHandling_Return)
+                if not stale.IsValid():
+                    break
+                stale.Release()
+            if self.trigger_source == "Software":
+                if not camera.WaitForFrameTriggerReady(int(self.timeout_s * 1000), pylon.TimeoutHandling_Return):
+                    raise DeviceTimeout(self._device, "trigger", f"not ready for a trigger within {self.timeout_s:.3g} s")
+                camera.ExecuteSoftwareTrigger()
+        except genicam.GenericException as error:
+            raise self._lost_or(GrabFailed, "trigger", error) from None
+
+    def retrieve(self, timeout: float | None = None) -> Frame:
+        """The next frame (one attempt, no retry)."""
+        camera = self._require_open("retrieve frame")
+        pylon, genicam = _pylon()
+        timeout = self.timeout_s if timeout is None else float(timeout)
+        try:
+            result = camera.RetrieveResult(max(1, int(timeout * 1000)), pylon.TimeoutHandling_Return)
+        except genicam.GenericException as error:
+            raise self._lost_or(GrabFailed, "retrieve frame", error) from None
+        if not result.IsValid():
+            if camera.IsCameraDeviceRemoved():
+                raise DeviceConnectionError(self._device, "retrieve frame", "the camera was removed")
+            raise DeviceTimeout(self._device, "retrieve frame", f"no frame within {timeout:.3g} s")
+        try:
+            if not result.GrabSucceeded():
+                description = result.GetErrorDescription().strip() or "unknown error"
+                raise GrabFailed(self._device, "retrieve frame", f"{description} (error 0x{result.GetErrorCode():x})")
+            image = np.array(result.GetArray(), copy=True)
+            pixel_format = camera.PixelFormat.GetValue()
+        finally:
+            result.Release()
+        self._frame_id += 1
+        return Frame(image, time.time(), self._frame_id, self.serial, SATURATION.get(pixel_format, int(image.max())))
+
+    def grab(self, timeout: float | None = None) -> Frame:
+        """Trigger and retrieve one frame; incomplete buffers and timeouts are retried
+        ``retries`` times before the typed error is raised. A vanished camera is not retried."""
+        last: DeviceError | None = None
+        for _attempt in range(self.retries + 1):
+            try:
+                self.trigger()
+                return self.retrieve(timeout)
+            except (GrabFailed, DeviceTimeout) as error:
+                last = error
+        assert last is not None
+        raise type(last)(self._device, "grab", f"{last.cause} (after {self.retries + 1} attempts)")
+
+    # ------------------------------------------------------------------ emulator helpers
+    def _image_stamp(self) -> tuple[int, int, int] | None:
+        try:
+            st = os.stat(self.emulator_image)
+        except OSError:
+            return None
+        return (st.st_ino, st.st_mtime_ns, st.st_size)
+
+    def force_failed_buffers(self, count: int) -> None:
+        """Emulator only: make the next ``count`` frames incomplete (fault injection for tests)."""
+        self._require_open("force failed buffers")
+        self._set("ForceFailedBufferCount", int(count))
+        self._node("ForceFailedBuffer").Execute()
+
+    def _require_open(self, operation: str):
+        if self._camera is None:
+            raise DeviceConnectionError(self._device, operation, "the camera is not open (call open() first)")
+        return self._camera
+
+    def _lost_or(self, kind: type[DeviceError], operation: str, error: Exception) -> DeviceError:
+        camera = self._camera
+        try:
+            removed = camera is not None and camera.IsCameraDeviceRemoved()
+        except Exception:  # noqa: BLE001 - the device may be gone entirely
+            removed = True
+        if removed:
+            return DeviceConnectionError(self._device, operation, "the camera was removed")
+        return kind(self._device, operation, str(error).split(" : ")[0])
+
+
+def _as_roi(roi: Roi | Mapping[str, int] | None) -> Roi | None:
+    if roi is None or isinstance(roi, Roi):
+        return roi
+    try:
+        return Roi(**{k: int(v) for k, v in dict(roi).items()})
+    except TypeError:
+        raise ValueError(f"roi: expected offset_x, offset_y, width, height, got {dict(roi)!r}") from None

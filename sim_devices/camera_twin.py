@@ -1,0 +1,229 @@
+"""Camera twins: image files for the pylon emulator, and an in-process ``Camera`` for unit tests.
+
+``CameraFileTwin`` renders the three frames on every settled world state and replaces the files
+the pylon emulator serves (``ImageFilename``) **before** the world's ``set_*`` call returns: world
+subscribers run synchronously, so once a robot twin reports "move done", any grab triggered after
+that sees the new pose, never a stale frame. The emulator re-reads the file at each grab.
+
+``SimCamera`` implements ``drivers.camera.Camera`` (plus ``trigger``/``retrieve``) by rendering
+directly from the world, without pypylon.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from drivers._errors import DeviceConnectionError, DeviceTimeout
+from drivers.camera import Frame, GrabFailed, Roi
+from sim_devices.faults import FaultKind, FaultPlan
+from sim_devices.optics import AXIS_NAMES, OpticalBench
+from sim_devices.renderer import Renderer
+from sim_devices.world import World, WorldState, pose_record
+
+
+def write_bmp_atomically(path: Path, image: np.ndarray) -> None:
+    """Write an 8-bit BMP so that a reader sees the old file or the new one, never a partial one."""
+    ok, encoded = cv2.imencode(".bmp", image)
+    if not ok:
+        raise OSError(f"could not encode {path.name} as BMP")
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with open(tmp, "wb") as handle:
+        handle.write(encoded.tobytes())
+    os.replace(tmp, path)  # atomic within one directory
+
+
+class CameraFileTwin:
+    """Keeps ``<directory>/x.bmp``, ``y.bmp``, ``z.bmp`` showing the current settled true pose.
+
+    Parameters
+    ----------
+    world : World
+    bench : OpticalBench
+    directory : path
+        Created if missing. Point each emulated camera's ``ImageFilename`` at its file.
+    seed : int, optional
+        Noise seed (default: the world's seed); frame noise is seeded per (camera, world seq).
+    """
+
+    def __init__(self, world: World, bench: OpticalBench, directory: str | Path, seed: int | None = None) -> None:
+        self.world = world
+        self.bench = bench
+        self.directory = Path(directory)
+        self.directory.mkdir(parents=True, exist_ok=True)
+        self.renderer = Renderer(bench, seed=world.config.seed if seed is None else seed, bit_depth=8)
+        self.paths = {name: self.directory / f"{name}.bmp" for name in AXIS_NAMES}
+        self.laser_on = True
+        self.exposure_scale = 1.0
+        self.frames_written = 0
+        self._subscribed = False
+        self._lock = threading.Lock()
+        self._last_state: WorldState | None = None
+
+    # ------------------------------------------------------------------ lifecycle (cell host API)
+    def start(self) -> dict[str, Any]:
+        """Render the current pose, then follow the world. Returns the file paths."""
+        if not self._subscribed:
+            self.world.subscribe(self._on_state)
+            self._subscribed = True
+            self._on_state(self.world.state(), force=True)
+        return {"files": {name: str(path) for name, path in self.paths.items()}}
+
+    def stop(self) -> None:
+        if self._subscribed:
+            self.world.unsubscribe(self._on_state)
+            self._subscribed = False
+
+    def control(self, command: str, **kwargs: Any) -> Any:
+        """``laser`` (on: bool), ``exposure`` (scale: float), ``render`` (re-render now), ``files``."""
+        if command == "laser":
+            self.laser_on = bool(kwargs["on"])
+        elif command == "exposure":
+            self.exposure_scale = float(kwargs["scale"])
+        elif command == "files":
+            return {name: str(path) for name, path in self.paths.items()}
+        elif command != "render":
+            raise ValueError(f"camera twin: unknown command {command!r}; expected laser, exposure, render, files")
+        self._on_state(self.world.state(), force=True)
+        return {"frames_written": self.frames_written}
+
+    # ------------------------------------------------------------------ rendering
+    def _on_state(self, state: WorldState, force: bool = False) -> None:
+        if not state.settled and not force:
+            return  # frames keep showing the last settled pose while the robot moves
+        with self._lock:
+            scale = self.exposure_scale if self.laser_on else 0.0
+            files = {}
+            for name in AXIS_NAMES:
+                image = self.renderer.render(name, state.opr_in_m, seq=state.seq, exposure_scale=scale)
+                write_bmp_atomically(self.paths[name], image)
+                files[name] = str(self.paths[name])
+            self.frames_written += 1
+            self._last_state = state
+            self.world.truth.record(
+                "frames", seq=state.seq, time=self.world.clock(), files=files,
+                opr_in_m=pose_record(state.opr_in_m), laser_on=self.laser_on,
+            )
+
+
+class SimCamera:
+    """An in-process camera implementing ``drivers.camera.Camera`` by rendering the world directly.
+
+    Parameters
+    ----------
+    world, bench :
+        The truth to image.
+    name : "x", "y" or "z"
+        Which screen's camera.
+    bit_depth : 8 or 12
+    faults : FaultPlan, optional
+        ``DROP_REPLY`` → the next grab's buffer is incomplete (``GrabFailed`` after retries),
+        ``STALL`` → no frame (``DeviceTimeout``), ``DISCONNECT`` → the camera vanished.
+    retries : int
+        Extra attempts after an incomplete buffer or a timeout.
+    """
+
+    def __init__(self, world: World, bench: OpticalBench, name: str, *, bit_depth: int = 8,
+                 faults: FaultPlan | None = None, retries: int = 2, seed: int | None = None) -> None:
+        if name not in AXIS_NAMES:
+            raise ValueError(f"SimCamera name must be one of {AXIS_NAMES}, got {name!r}")
+        self.name = name
+        self.world = world
+        self.bench = bench
+        self.faults = faults or FaultPlan()
+        self.retries = int(retries)
+        self.renderer = Renderer(bench, seed=(world.config.seed if seed is None else seed) + 7919, bit_depth=bit_depth)
+        self.exposure_scale = 1.0
+        self.software_trigger = True
+        self.roi: Roi | None = None
+        self._open = False
+        self._frame_id = 0
+        self._pending: tuple[np.ndarray, float] | None = None
+        self._device = f"camera {name} (sim)"
+
+    # ------------------------------------------------------------------ Camera protocol
+    def open(self) -> None:
+        self._open = True
+
+    def close(self) -> None:
+        self._open = False
+        self._pending = None
+
+    def __enter__(self) -> "SimCamera":
+        self.open()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def configure(self, *, exposure_s: float | None = None, gain_db: float | None = None,
+                  pixel_format: str | None = None, roi: Roi | None = None,
+                  software_trigger: bool | None = None) -> None:
+        """Exposure scales the rendered signal relative to 1 ms; gain in dB scales it too."""
+        if exposure_s is not None:
+            if exposure_s <= 0:
+                raise ValueError(f"exposure_s must be positive, got {exposure_s}")
+            self.exposure_scale = exposure_s / 1e-3
+        if gain_db is not None:
+            self.exposure_scale *= 10 ** (gain_db / 20.0)
+        if pixel_format is not None:
+            depth = {"Mono8": 8, "Mono12": 12}.get(pixel_format)
+            if depth is None:
+                raise ValueError(f"SimCamera supports pixel formats Mono8 and Mono12, got {pixel_format!r}")
+            self.renderer = Renderer(self.bench, seed=self.renderer.seed, bit_depth=depth)
+        if roi is not None:
+            self.roi = roi
+        if software_trigger is not None:
+            self.software_trigger = bool(software_trigger)
+
+    def trigger(self) -> None:
+        """Expose now: the frame shows the world's pose at this instant."""
+        self._require_open("trigger")
+        state = self.world.state()
+        self._pending = (state.opr_in_m, float(state.seq))
+
+    def retrieve(self, timeout: float = 2.0) -> Frame:
+        """The frame of the last trigger (one attempt; ``grab`` adds retries)."""
+        self._require_open("retrieve frame")
+        if self.faults.take(FaultKind.DISCONNECT):
+            self._open = False
+            raise DeviceConnectionError(self._device, "retrieve frame", "the camera was removed")
+        if self.faults.take(FaultKind.STALL) or self._pending is None:
+            self._pending = None
+            time.sleep(min(timeout, 0.01))
+            raise DeviceTimeout(self._device, "retrieve frame", f"no frame within {timeout:.3g} s")
+        opr_in_m, _seq = self._pending
+        self._pending = None
+        if self.faults.take(FaultKind.DROP_REPLY):
+            raise GrabFailed(self._device, "retrieve frame", "the buffer was incompletely grabbed")
+        self._frame_id += 1
+        image = self.renderer.render(self.name, opr_in_m, seq=self._frame_id, exposure_scale=self.exposure_scale)
+        if self.roi is not None:
+            r = self.roi
+            image = image[r.offset_y:r.offset_y + r.height, r.offset_x:r.offset_x + r.width].copy()
+        return Frame(image, time.time(), self._frame_id, self.name, self.renderer.saturation)
+
+    def grab(self, timeout: float = 2.0) -> Frame:
+        """Trigger and retrieve, retrying incomplete buffers and timeouts a bounded number of times."""
+        last: Exception | None = None
+        for _attempt in range(self.retries + 1):
+            self.trigger()
+            try:
+                return self.retrieve(timeout)
+            except (GrabFailed, DeviceTimeout) as error:
+                last = error
+        assert last is not None
+        raise type(last)(self._device, "grab", f"{last.cause} ({self.retries + 1} attempts)")
+
+    def _require_open(self, operation: str) -> None:
+        if not self._open:
+            raise DeviceConnectionError(self._device, operation, "the camera is not open (call open() first)")
+
+
+__all__ = ["CameraFileTwin", "SimCamera", "write_bmp_atomically"]
