@@ -1,0 +1,285 @@
+"""``GcsTable``: a rotary stage behind a PI-GCS-2.0-style controller on a serial line (pyserial).
+
+Line protocol: commands end with LF; set commands are silent and are followed by ``ERR?`` (a
+nonzero, latched error code becomes ``TableFault``); queries answer one line per item, every line but
+the last ending in ``" \\n"``. Degrees on the wire, radians in the API.
+
+Robustness: the input is flushed before every request; a query that gets no answer within
+``timeout`` is a ``DeviceTimeout``; an answer that is not printable ASCII, does not parse, or stops
+without its LF is a ``ProtocolError``. Both are retried ``retries`` times (after a guard wait for a
+late answer, which the flush then discards). Set commands are never resent (``MVR`` twice would move
+twice); only their ``ERR?`` is.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import time
+from typing import Any
+
+import serial
+
+from drivers._errors import DeviceConnectionError, DeviceError, DeviceTimeout, MotionRefused, ProtocolError
+from drivers.rotary_table._interface import TableFault, TableState
+
+PI_ERRORS = {
+    1: "parameter syntax error",
+    2: "unknown command",
+    5: "move on an unreferenced axis or with servo off",
+    7: "position out of limits",
+    10: "controller was stopped by command",
+    15: "invalid axis identifier",
+    17: "parameter out of range",
+    1024: "motion error (position error too large, servo switched off)",
+}
+STOPPED_BY_COMMAND = 10
+_NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
+
+
+class GcsTable:
+    """One axis of a GCS 2.0 controller.
+
+    Parameters
+    ----------
+    name : str
+        Device name for errors.
+    port : str
+        Serial port path (or a pyserial URL such as ``socket://127.0.0.1:50000``).
+    baudrate : int
+    axis : str
+        GCS axis identifier (``"1"``).
+    timeout : float
+        Seconds to wait for one answer.
+    retries : int
+        Extra attempts of a query after a timeout or a garbled answer.
+    poll_interval : float
+        Seconds between ``ONT?`` polls while waiting.
+    """
+
+    def __init__(self, name: str, port: str, *, baudrate: int = 115200, axis: str = "1", timeout: float = 0.5,
+                 retries: int = 2, poll_interval: float = 0.01) -> None:
+        if retries < 0:
+            raise ValueError(f"retries must be >= 0, got {retries}")
+        if not re.fullmatch(r"[A-Za-z0-9_]+", str(axis)):
+            raise ValueError(f"axis identifier must be alphanumeric, got {axis!r}")
+        self.name = name
+        self.port = port
+        self.baudrate = int(baudrate)
+        self.axis = str(axis)
+        self.timeout = float(timeout)
+        self.retries = int(retries)
+        self.poll_interval = float(poll_interval)
+        self._serial: serial.Serial | None = None
+        self.identity = ""
+
+    # ----------------------------------------------------------------------------- connection
+    def connect(self) -> None:
+        self.close()
+        try:
+            self._serial = serial.serial_for_url(self.port, baudrate=self.baudrate, timeout=self.timeout,
+                                                 write_timeout=self.timeout)
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise DeviceConnectionError(self.name, f"open {self.port}", str(exc)) from None
+        try:
+            version = self._query("CSV?")[0].strip()
+            if version not in ("2", "2.0"):
+                raise ProtocolError(self.name, "CSV?", f"controller speaks GCS {version!r}, expected 2.0")
+            self.identity = self._query("*IDN?")[0].strip()
+            self._error_code()  # clear whatever was latched before we came
+        except DeviceError:
+            self.close()
+            raise
+
+    def close(self) -> None:
+        if self._serial is not None:
+            try:
+                self._serial.close()
+            finally:
+                self._serial = None
+
+    def __enter__(self) -> "GcsTable":
+        self.connect()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ----------------------------------------------------------------------------- line I/O
+    def _port(self, operation: str) -> serial.Serial:
+        if self._serial is None:
+            raise DeviceConnectionError(self.name, operation, "not connected (call connect())")
+        return self._serial
+
+    def _send(self, line: str, operation: str) -> None:
+        port = self._port(operation)
+        try:
+            port.reset_input_buffer()  # a late answer to an earlier request must not pass for this one
+            port.write(line.encode("ascii") + b"\n")
+            port.flush()
+        except (serial.SerialException, OSError) as exc:
+            raise DeviceConnectionError(self.name, operation, f"write failed: {exc}") from None
+
+    def _read_answer(self, operation: str) -> list[str]:
+        port = self._port(operation)
+        deadline = time.monotonic() + self.timeout
+        lines: list[str] = []
+        partial = b""
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                break
+            port.timeout = remaining
+            try:
+                chunk = port.read_until(b"\n")
+            except (serial.SerialException, OSError) as exc:
+                raise DeviceConnectionError(self.name, operation, f"read failed: {exc}") from None
+            partial += chunk
+            if not partial.endswith(b"\n"):
+                continue
+            if any(b < 0x20 or b > 0x7E for b in partial[:-1]):
+                raise ProtocolError(self.name, operation, f"non-ASCII bytes in the answer: {partial!r}")
+            text = partial.decode("ascii")
+            partial = b""
+            if text.endswith(" \n"):
+                lines.append(text[:-2])
+                continue
+            lines.append(text[:-1])
+            return lines
+        got = b"".join(line.encode() + b" \n" for line in lines) + partial
+        if got:
+            raise ProtocolError(self.name, operation, f"answer cut short (no final LF within {self.timeout} s): {got!r}")
+        raise DeviceTimeout(self.name, operation, f"no answer within {self.timeout} s")
+
+    def _query(self, line: str, pattern: str | None = None) -> list[str]:
+        """Send a query, return its lines (each matching ``pattern`` if given); bounded retries."""
+        last: DeviceError | None = None
+        for attempt in range(self.retries + 1):
+            self._send(line, line)
+            try:
+                lines = self._read_answer(line)
+                if pattern is not None:
+                    for item in lines:
+                        if not re.fullmatch(pattern, item):
+                            raise ProtocolError(self.name, line, f"unexpected answer {item!r}")
+                return lines
+            except DeviceTimeout as exc:
+                last = exc
+                time.sleep(self.timeout)  # guard: a late answer lands now and is flushed by the next send
+            except ProtocolError as exc:
+                last = exc
+                time.sleep(min(self.timeout, 0.05))  # let the rest of a garbled answer drain
+        assert last is not None
+        if isinstance(last, DeviceTimeout) and line != "ERR?":
+            code = self._error_code(raise_on_failure=False)
+            if code:  # the controller refused the query: that is the real cause
+                raise TableFault(self.name, line, f"GCS error {code}: {PI_ERRORS.get(code, 'see the manual')}")
+        raise last
+
+    def _axis_value(self, query: str) -> str:
+        answer = self._query(f"{query} {self.axis}", rf"{re.escape(self.axis)}=\S+")
+        if len(answer) != 1:
+            raise ProtocolError(self.name, query, f"expected one line for axis {self.axis}, got {answer!r}")
+        return answer[0].split("=", 1)[1]
+
+    def _axis_number(self, query: str) -> float:
+        value = self._axis_value(query)
+        if not re.fullmatch(_NUMBER, value):
+            raise ProtocolError(self.name, query, f"not a number: {value!r}")
+        return float(value)
+
+    def _axis_flag(self, query: str) -> bool:
+        value = self._axis_value(query)
+        if value not in ("0", "1"):
+            raise ProtocolError(self.name, query, f"expected 0 or 1, got {value!r}")
+        return value == "1"
+
+    def _error_code(self, raise_on_failure: bool = True) -> int:
+        try:
+            answer = self._query("ERR?", r"-?\d+")
+        except DeviceError:
+            if raise_on_failure:
+                raise
+            return 0
+        return int(answer[0])
+
+    def _command(self, line: str, operation: str, tolerate: tuple[int, ...] = ()) -> None:
+        self._send(line, operation)
+        code = self._error_code()
+        if code and code not in tolerate:
+            raise TableFault(self.name, operation, f"GCS error {code}: {PI_ERRORS.get(code, 'see the manual')}")
+
+    # ----------------------------------------------------------------------------- table API
+    def _set_speed(self, speed: float | None, operation: str) -> None:
+        if speed is None:
+            return
+        if not math.isfinite(speed) or speed <= 0:
+            raise MotionRefused(self.name, operation, f"speed {speed!r} rad/s is not a usable positive speed")
+        self._command(f"VEL {self.axis} {math.degrees(speed):.9f}", operation)
+
+    def move_absolute(self, angle: float, speed: float | None = None) -> None:
+        operation = f"move_absolute({angle!r})"
+        if not math.isfinite(angle):
+            raise MotionRefused(self.name, operation, "target angle is not a finite number")
+        self._set_speed(speed, operation)
+        self._command(f"MOV {self.axis} {math.degrees(angle):.9f}", operation)
+
+    def move_relative(self, delta: float, speed: float | None = None) -> None:
+        operation = f"move_relative({delta!r})"
+        if not math.isfinite(delta):
+            raise MotionRefused(self.name, operation, "distance is not a finite number")
+        self._set_speed(speed, operation)
+        self._command(f"MVR {self.axis} {math.degrees(delta):.9f}", operation)
+
+    def _wait(self, done, timeout: float, operation: str) -> None:
+        deadline = time.monotonic() + timeout
+        polls = 0
+        while True:
+            if done():
+                return
+            polls += 1
+            if polls % 10 == 0:  # a motion error leaves ONT? at 0 for ever: look for it now and then
+                code = self._error_code()
+                if code:
+                    raise TableFault(self.name, operation, f"GCS error {code}: {PI_ERRORS.get(code, 'see the manual')}")
+            if time.monotonic() > deadline:
+                raise DeviceTimeout(self.name, operation, f"not on target after {timeout} s")
+            time.sleep(self.poll_interval)
+
+    def wait_in_position(self, timeout: float = 30.0) -> float:
+        self._wait(lambda: self._axis_flag("ONT?"), timeout, "wait_in_position")
+        return self.position()
+
+    def home(self, timeout: float = 30.0) -> None:
+        self._command(f"FRF {self.axis}", "home (FRF)")
+        self._wait(lambda: self._axis_flag("FRF?") and self._axis_flag("ONT?"), timeout, "home (FRF)")
+
+    def position(self) -> float:
+        return math.radians(self._axis_number("POS?"))
+
+    def stop(self) -> None:
+        self._command(f"HLT {self.axis}", "stop (HLT)", tolerate=(STOPPED_BY_COMMAND,))
+
+    def reset_alarm(self) -> None:
+        """Switch the servo back on after a motion error (``SVO <axis> 1``)."""
+        self._command(f"SVO {self.axis} 1", "reset_alarm (SVO)")
+
+    def state(self) -> TableState:
+        servo_on = self._axis_flag("SVO?")
+        on_target = self._axis_flag("ONT?")
+        homed = self._axis_flag("FRF?")
+        moving = self._query("#5", r"-?\d+")
+        return TableState(
+            in_position=on_target,
+            moving=int(moving[0]) != 0,
+            homed=homed,
+            fault=None if servo_on else "servo off (motion error or switched off)",
+            position=self.position(),
+        )
+
+    def raw_query(self, line: str) -> list[str]:
+        """A GCS query as it is (for diagnostics and the benchmark)."""
+        return self._query(line)
+
+    def describe(self) -> dict[str, Any]:
+        return {"port": self.port, "axis": self.axis, "identity": self.identity}

@@ -1,0 +1,330 @@
+"""``ModbusTable``: a rotary-table servo drive over Modbus TCP or RTU (pymodbus 3.16 sync clients).
+
+Device units (counts, velocity units, opcodes) appear only at the registers, taken from the
+``RegisterMap`` in configuration; the public API is in radians and rad/s.
+
+Error handling
+--------------
+- A Modbus exception response (pymodbus 3.16 *returns* an ``ExceptionResponse``, function code | 0x80)
+  becomes ``TableFault`` for code 4 (device failure: the drive refused, e.g. alarm present),
+  a retry then ``DeviceTimeout`` for 5/6 (acknowledge/busy) and 10/11 (gateway), else ``ProtocolError``;
+  every message names the register and the code.
+- No answer (``ModbusIOException``) becomes ``DeviceTimeout``; if bytes did arrive but formed no valid
+  frame (garbage, truncation, bad CRC) it becomes ``ProtocolError``. Both are retried ``retries``
+  times, after a guard wait and a flush of stale input, so a late answer is never taken for a new one.
+- Relative moves are sent as absolute targets (last target + delta), so a retried write can never
+  move the table twice.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Any, Callable, Mapping
+
+from pymodbus.client import ModbusSerialClient, ModbusTcpClient
+from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
+from pymodbus.pdu import ExceptionResponse
+
+from drivers._errors import DeviceConnectionError, DeviceError, DeviceTimeout, MotionRefused, ProtocolError
+from drivers.rotary_table._interface import TableFault, TableState
+from drivers.rotary_table._registers import RegisterMap
+
+EXCEPTION_NAMES = {
+    1: "illegal function",
+    2: "illegal data address",
+    3: "illegal data value",
+    4: "device failure",
+    5: "acknowledge (busy, try later)",
+    6: "device busy",
+    7: "negative acknowledge",
+    8: "memory parity error",
+    10: "gateway path unavailable",
+    11: "gateway target failed to respond",
+}
+_RETRYABLE_CODES = {5, 6, 10, 11}
+
+
+class ModbusTable:
+    """A rotary table behind a Modbus servo drive.
+
+    Use ``ModbusTable.tcp(...)`` / ``ModbusTable.rtu(...)`` or the ``create`` factory.
+
+    Parameters
+    ----------
+    name : str
+        Device name for errors.
+    make_client : callable
+        Returns a fresh pymodbus sync client (called on connect and after a lost connection).
+    endpoint : str
+        Human-readable address for messages.
+    unit : int
+        Modbus device id.
+    register_map : RegisterMap or mapping
+    timeout : float
+        Seconds to wait for one answer.
+    retries : int
+        Extra attempts after a timeout/garbled answer (bounded).
+    poll_interval : float
+        Seconds between status polls while waiting.
+    """
+
+    def __init__(self, name: str, make_client: Callable[[Callable[[bool, bytes], bytes]], Any], endpoint: str, *,
+                 unit: int = 1, register_map: RegisterMap | Mapping[str, Any] | None = None,
+                 timeout: float = 0.5, retries: int = 2, poll_interval: float = 0.01) -> None:
+        if retries < 0:
+            raise ValueError(f"retries must be >= 0, got {retries}")
+        self.name = name
+        self.endpoint = endpoint
+        self.unit = int(unit)
+        self.map = RegisterMap.from_config(register_map)
+        self.timeout = float(timeout)
+        self.retries = int(retries)
+        self.poll_interval = float(poll_interval)
+        self._make_client = make_client
+        self._client = None
+        self._rx_bytes = 0
+        self._target: int | None = None  # last commanded position (counts)
+
+    # ----------------------------------------------------------------------------- construction
+    @classmethod
+    def tcp(cls, name: str, host: str, port: int = 502, **kwargs: Any) -> "ModbusTable":
+        timeout = float(kwargs.get("timeout", 0.5))
+        return cls(name, lambda trace: ModbusTcpClient(host, port=int(port), timeout=timeout, retries=0,
+                                                       reconnect_delay=0, trace_packet=trace),
+                   f"modbus tcp {host}:{port}", **kwargs)
+
+    @classmethod
+    def rtu(cls, name: str, port: str, baudrate: int = 115200, **kwargs: Any) -> "ModbusTable":
+        timeout = float(kwargs.get("timeout", 0.5))
+        return cls(name, lambda trace: ModbusSerialClient(port, baudrate=int(baudrate), timeout=timeout, retries=0,
+                                                          reconnect_delay=0, trace_packet=trace),
+                   f"modbus rtu {port}", **kwargs)
+
+    # ----------------------------------------------------------------------------- connection
+    def _trace(self, sending: bool, data: bytes) -> bytes:
+        if not sending:
+            self._rx_bytes = max(self._rx_bytes, len(data))
+        return data
+
+    def connect(self) -> None:
+        self.close()
+        client = self._make_client(self._trace)
+        try:
+            ok = client.connect()
+        except Exception as exc:  # pyserial / socket errors at open
+            client.close()
+            raise DeviceConnectionError(self.name, f"connect ({self.endpoint})", str(exc)) from None
+        if not ok:
+            client.close()
+            raise DeviceConnectionError(self.name, f"connect ({self.endpoint})", "the drive cannot be reached")
+        self._client = client
+        self._read(self.map.status, 1)  # proves the drive answers with this unit id
+
+    def close(self) -> None:
+        if self._client is not None:
+            self._client.close()
+            self._client = None
+
+    def __enter__(self) -> "ModbusTable":
+        self.connect()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _flush(self) -> None:
+        """Throw away stale input (a late answer to an earlier request)."""
+        socket = getattr(self._client, "socket", None)
+        try:
+            if hasattr(socket, "reset_input_buffer"):
+                socket.reset_input_buffer()
+            elif socket is not None:
+                socket.setblocking(False)
+                try:
+                    while socket.recv(4096):
+                        pass
+                except (BlockingIOError, InterruptedError):
+                    pass
+                finally:
+                    socket.setblocking(True)
+                    socket.settimeout(self.timeout)
+        except OSError:
+            pass
+
+    # ----------------------------------------------------------------------------- transactions
+    def _transact(self, operation: str, address: int, call: Callable[[Any], Any]) -> Any:
+        """Run ``call(client)`` with flush, bounded retries and typed errors."""
+        register = self.map.name_of(address)
+        last: DeviceError | None = None
+        for attempt in range(self.retries + 1):
+            if self._client is None:
+                try:
+                    self.connect_quietly()
+                except DeviceConnectionError as exc:
+                    last = exc
+                    time.sleep(min(0.1, self.timeout))
+                    continue
+            self._flush()
+            self._rx_bytes = 0
+            try:
+                response = call(self._client)
+            except ConnectionException as exc:
+                last = DeviceConnectionError(self.name, f"{operation} {register}", f"connection lost: {exc}")
+                self.close()
+                continue
+            except ModbusIOException as exc:
+                if self._rx_bytes:
+                    last = ProtocolError(self.name, f"{operation} {register}",
+                                         f"garbled or truncated answer ({self._rx_bytes} bytes, no valid frame): {exc}")
+                else:
+                    last = DeviceTimeout(self.name, f"{operation} {register}",
+                                         f"no answer within {self.timeout} s (attempt {attempt + 1})")
+                time.sleep(self.timeout)  # guard: let a late answer arrive, then it is flushed
+                continue
+            except ModbusException as exc:
+                last = ProtocolError(self.name, f"{operation} {register}", str(exc))
+                continue
+            except OSError as exc:
+                last = DeviceConnectionError(self.name, f"{operation} {register}", str(exc))
+                self.close()
+                continue
+            if isinstance(response, ExceptionResponse) or response.isError():
+                code = int(getattr(response, "exception_code", 0))
+                text = f"Modbus exception code {code} ({EXCEPTION_NAMES.get(code, 'unknown')})"
+                if code in _RETRYABLE_CODES:
+                    last = DeviceTimeout(self.name, f"{operation} {register}", text)
+                    time.sleep(self.poll_interval)
+                    continue
+                if code == 4:
+                    raise TableFault(self.name, f"{operation} {register}", text + self._alarm_text())
+                raise ProtocolError(self.name, f"{operation} {register}", text)
+            return response
+        assert last is not None
+        raise last
+
+    def connect_quietly(self) -> None:
+        """Reconnect after a lost connection (no status read)."""
+        client = self._make_client(self._trace)
+        if not client.connect():
+            client.close()
+            raise DeviceConnectionError(self.name, f"reconnect ({self.endpoint})", "the drive cannot be reached")
+        self._client = client
+
+    def _alarm_text(self) -> str:
+        """The drive's alarm register in words, best effort (used inside an error path)."""
+        try:
+            response = self._client.read_holding_registers(self.map.alarm, count=1, device_id=self.unit)
+            if not response.isError() and response.registers[0]:
+                return f"; drive alarm: {self.map.alarm_bits.describe(response.registers[0])}"
+        except Exception:
+            pass
+        return ""
+
+    def _read(self, address: int, count: int) -> list[int]:
+        response = self._transact("read", address, lambda c: c.read_holding_registers(
+            address, count=count, device_id=self.unit))
+        registers = list(response.registers)
+        if len(registers) < count:
+            raise ProtocolError(self.name, f"read {self.map.name_of(address)}",
+                                f"asked for {count} registers, got {len(registers)}")
+        return registers[:count]
+
+    def _write(self, address: int, values: list[int]) -> None:
+        if len(values) == 1:
+            self._transact("write", address, lambda c: c.write_register(address, values[0], device_id=self.unit))
+        else:
+            self._transact("write", address, lambda c: c.write_registers(address, values, device_id=self.unit))
+
+    # ----------------------------------------------------------------------------- table API
+    def _check_no_alarm(self, operation: str) -> None:
+        alarm = self._read(self.map.alarm, 1)[0]
+        if alarm:
+            raise TableFault(self.name, operation, f"drive alarm 0x{alarm:04x}: {self.map.alarm_bits.describe(alarm)}")
+
+    def _set_speed(self, speed: float | None, operation: str) -> None:
+        if speed is None:
+            return
+        units = self.map.rad_s_to_velocity(speed)
+        if not math.isfinite(speed) or speed <= 0 or units <= 0 or units > 0xFFFF:
+            raise MotionRefused(self.name, operation, f"speed {speed!r} rad/s is not a usable positive speed")
+        self._write(self.map.velocity, [units])
+
+    def _command(self, opcode: int, operation: str) -> None:
+        self._write(self.map.control, [opcode])
+
+    def move_absolute(self, angle: float, speed: float | None = None) -> None:
+        operation = f"move_absolute({angle!r})"
+        if not math.isfinite(angle):
+            raise MotionRefused(self.name, operation, "target angle is not a finite number")
+        counts = self.map.rad_to_counts(angle)
+        if not -(2 ** 31) <= counts < 2 ** 31:
+            raise MotionRefused(self.name, operation, "target outside the drive's 32-bit position range")
+        self._check_no_alarm(operation)
+        self._set_speed(speed, operation)
+        self._write(self.map.position_command, self.map.split32(counts))
+        self._command(self.map.opcodes.move_absolute, operation)
+        self._target = counts
+
+    def move_relative(self, delta: float, speed: float | None = None) -> None:
+        if not math.isfinite(delta):
+            raise MotionRefused(self.name, f"move_relative({delta!r})", "distance is not a finite number")
+        base = self._target if self._target is not None else self._encoder_counts()
+        self.move_absolute(self.map.counts_to_rad(base) + delta, speed)
+
+    def _encoder_counts(self) -> int:
+        return self.map.join32(self._read(self.map.encoder_position, 2))
+
+    def _status(self) -> int:
+        return self._read(self.map.status, 1)[0]
+
+    def _wait(self, done: Callable[[int], bool], timeout: float, operation: str) -> None:
+        bits = self.map.status_bits
+        deadline = time.monotonic() + timeout
+        while True:
+            status = self._status()
+            if status >> bits.alarm & 1 or status >> bits.drive_fault & 1:
+                alarm = self._read(self.map.alarm, 1)[0]
+                raise TableFault(self.name, operation, f"drive alarm 0x{alarm:04x}: {self.map.alarm_bits.describe(alarm)}")
+            if done(status):
+                return
+            if time.monotonic() > deadline:
+                raise DeviceTimeout(self.name, operation, f"not in position after {timeout} s (status 0x{status:04x})")
+            time.sleep(self.poll_interval)
+
+    def wait_in_position(self, timeout: float = 30.0) -> float:
+        bits = self.map.status_bits
+        self._wait(lambda s: bool(s >> bits.in_position & 1) and not s >> bits.moving & 1, timeout, "wait_in_position")
+        return self.position()
+
+    def home(self, timeout: float = 30.0) -> None:
+        bits = self.map.status_bits
+        self._check_no_alarm("home")
+        self._command(self.map.opcodes.home, "home")
+        self._wait(lambda s: bool(s >> bits.homed & 1) and bool(s >> bits.in_position & 1)
+                   and not s >> bits.homing & 1, timeout, "home")
+        self._target = 0
+
+    def position(self) -> float:
+        return self.map.counts_to_rad(self._encoder_counts())
+
+    def stop(self) -> None:
+        self._command(self.map.opcodes.stop, "stop")
+        self._target = None
+
+    def reset_alarm(self) -> None:
+        """Clear the drive's alarm (the cause must be gone)."""
+        self._command(self.map.opcodes.alarm_reset, "reset_alarm")
+
+    def state(self) -> TableState:
+        m, bits = self.map, self.map.status_bits
+        alarm = self._read(m.alarm, 1)[0]
+        status = self._status()
+        position = self.position()
+        return TableState(
+            in_position=bool(status >> bits.in_position & 1),
+            moving=bool(status >> bits.moving & 1),
+            homed=bool(status >> bits.homed & 1),
+            fault=m.alarm_bits.describe(alarm) if alarm else None,
+            position=position,
+        )

@@ -1,0 +1,26 @@
+"""Twin of the precision rotary table: physics, Modbus TCP/RTU and PI-GCS-2.0-style serial faces.
+
+See ``docs/rotary_table.md``. The host object ``RotaryTableTwin`` is what the cell embeds;
+``make_host`` is the factory for ``TwinProcess``.
+"""
+
+from sim_devices.rotary_table._gcs import GcsController, GcsTableTwin
+from sim_devices.rotary_table._host import TRANSPORTS, RotaryTableTwin, make_host
+from sim_devices.rotary_table._modbus import ModbusDrive, ModbusTableTwin
+from sim_devices.rotary_table._physics import ARCSEC, CommandRefused, TableConfig, TablePhysics
+from sim_devices.rotary_table._tcp_proxy import TcpFaultProxy
+
+__all__ = [
+    "ARCSEC",
+    "CommandRefused",
+    "GcsController",
+    "GcsTableTwin",
+    "ModbusDrive",
+    "ModbusTableTwin",
+    "RotaryTableTwin",
+    "TRANSPORTS",
+    "TableConfig",
+    "TablePhysics",
+    "TcpFaultProxy",
+    "make_host",
+]

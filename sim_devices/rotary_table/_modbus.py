@@ -1,0 +1,240 @@
+"""The rotary table's Modbus face: a pymodbus 3.16 ``SimDevice`` whose async action is the drive.
+
+pymodbus 3.16 ignores datastore subclasses; the supported hook is ``SimDevice(action=...)``, an async
+function run before every read and write. Ours advances the table physics, refreshes the read-only
+registers (alarm, status, encoder, actual velocity), executes writes to the velocity, acceleration
+and control registers, and answers an armed ``exception`` fault with that Modbus exception code.
+
+Transport faults (dropped reply, delay, garbage, truncation, bad CRC, stall, disconnect) are not
+taken here but in the relay in front of the server (``sim_devices._pty``), one plan per endpoint.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+from typing import Any
+
+from pymodbus.constants import ExcCodes
+from pymodbus.server import ModbusSerialServer, ModbusTcpServer
+from pymodbus.simulator import DataType, SimData, SimDevice
+
+from drivers.rotary_table._registers import RegisterMap
+from sim_devices._pty import PtyRelay, modbus_rtu_reply_framer, modbus_tcp_reply_framer
+from sim_devices.faults import FaultKind, FaultPlan
+from sim_devices.rotary_table._physics import CommandRefused, TablePhysics
+from sim_devices.rotary_table._tcp_proxy import TcpFaultProxy
+
+
+def _corrupt_mbap(reply: bytes) -> bytes:
+    """Modbus TCP has no CRC: a "bad CRC" answer is a corrupted MBAP header (wrong protocol id)."""
+    return reply[:2] + b"\xa5\x5a" + reply[4:] if len(reply) >= 4 else reply
+
+
+class ModbusDrive:
+    """Register image of the drive, kept in step with the physics by the SimDevice action."""
+
+    def __init__(self, physics: TablePhysics, register_map: RegisterMap, faults: FaultPlan, unit: int = 1) -> None:
+        self.physics = physics
+        self.map = register_map
+        self.faults = faults
+        self.unit = unit
+        self._scale = register_map.counts_per_rev / physics.config.counts_per_rev
+        self.requests = 0
+
+    def device(self) -> SimDevice:
+        m = self.map
+        layout = [  # (address, width, read only)
+            (m.alarm, 1, True),
+            (m.status, 1, True),
+            (m.encoder_position, 2, True),
+            (m.position_command, 2, False),
+            (m.velocity, 1, False),
+            (m.acceleration, 1, False),
+            (m.actual_velocity, 1, True),
+            (m.control, 1, False),
+        ]
+        spans = sorted((a, a + w) for a, w, _ in layout)
+        if any(b[0] < a[1] for a, b in zip(spans, spans[1:])):
+            raise ValueError(f"register map: overlapping registers {spans}")
+        simdata = [SimData(address=a, count=w, values=0, datatype=DataType.REGISTERS, readonly=ro)
+                   for a, w, ro in layout]
+        return SimDevice(id=self.unit, simdata=simdata, action=self.action)
+
+    # ----------------------------------------------------------------------------- the action
+    async def action(self, function_code: int, start_address: int, address: int, count: int,
+                     registers: list[int], set_values: list[int] | list[bool] | None) -> ExcCodes | None:
+        self.requests += 1
+        fault = self.faults.take(FaultKind.EXCEPTION)
+        if fault is not None:
+            return ExcCodes(int(fault.params.get("code", ExcCodes.DEVICE_FAILURE)))
+        if set_values is not None:
+            result = self._write(start_address, address, registers, [int(v) for v in set_values])
+            if result is not None:
+                self._refresh(start_address, registers)
+                return result
+        self._refresh(start_address, registers)
+        return None
+
+    def _write(self, start: int, address: int, registers: list[int], values: list[int]) -> ExcCodes | None:
+        m = self.map
+        written = dict(zip(range(address, address + len(values)), values))
+
+        def current(reg: int) -> int:  # the value after this write lands
+            return written.get(reg, registers[reg - start])
+
+        try:
+            if m.velocity in written:
+                self.physics.set_speed(m.velocity_to_rad_s(current(m.velocity)))
+            if m.acceleration in written:
+                self.physics.set_acceleration(m.accel_to_rad_s2(current(m.acceleration)))
+            if m.control in written:
+                target = m.join32([current(m.position_command), current(m.position_command + 1)])
+                self._execute(written[m.control], target)
+        except CommandRefused:
+            return ExcCodes.DEVICE_FAILURE
+        except ValueError:
+            return ExcCodes.ILLEGAL_VALUE
+        return None
+
+    def _execute(self, opcode: int, position_command: int) -> None:
+        ops, physics = self.map.opcodes, self.physics
+        counts = int(round(position_command / self._scale))
+        if opcode == ops.move_absolute:
+            physics.move_to_counts(counts)
+        elif opcode == ops.move_relative:
+            physics.move_by_counts(counts)
+        elif opcode == ops.home:
+            physics.home()
+        elif opcode == ops.stop:
+            physics.stop()
+        elif opcode == ops.enable:
+            physics.enable(True)
+        elif opcode == ops.disable:
+            physics.enable(False)
+        elif opcode == ops.alarm_reset:
+            physics.alarm_reset()
+        elif opcode != 0:
+            raise ValueError(f"unknown opcode 0x{opcode:02x}")
+
+    def _refresh(self, start: int, registers: list[int]) -> None:
+        m, bits = self.map, self.map.status_bits
+        status = self.physics.status()
+        counts = int(round(self.physics.read_counts() * self._scale))
+        word = 0
+        for name in ("enabled", "moving", "stopping", "homing", "homed", "in_position"):
+            if status[name]:
+                word |= 1 << getattr(bits, name)
+        alarm_word = 0
+        for alarm in status["alarms"]:
+            alarm_word |= 1 << getattr(m.alarm_bits, alarm, m.alarm_bits.encoder_fault)
+        if alarm_word:
+            word |= (1 << bits.alarm) | (1 << bits.drive_fault)
+        registers[m.alarm - start] = alarm_word
+        registers[m.status - start] = word
+        high_low = m.split32(counts)
+        registers[m.encoder_position - start] = high_low[0]
+        registers[m.encoder_position + 1 - start] = high_low[1]
+        registers[m.actual_velocity - start] = m.rad_s_to_velocity(status["velocity"]) & 0xFFFF
+        registers[m.velocity - start] = m.rad_s_to_velocity(self.physics.speed) & 0xFFFF
+        registers[m.acceleration - start] = m.rad_s2_to_accel(self.physics.acceleration) & 0xFFFF
+
+
+class _LoopThread:
+    """An asyncio loop in a daemon thread (pymodbus servers need a running loop)."""
+
+    def __init__(self, name: str) -> None:
+        self.loop = asyncio.new_event_loop()
+        self._thread = threading.Thread(target=self.loop.run_forever, name=name, daemon=True)
+        self._thread.start()
+
+    def run(self, coro, timeout: float = 10.0) -> Any:
+        return asyncio.run_coroutine_threadsafe(coro, self.loop).result(timeout)
+
+    def close(self) -> None:
+        async def _cancel_rest() -> None:
+            tasks = [t for t in asyncio.all_tasks() if t is not asyncio.current_task()]
+            for task in tasks:
+                task.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+
+        try:
+            self.run(_cancel_rest(), 5.0)
+        except Exception:
+            pass
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self._thread.join(5.0)
+        if not self._thread.is_alive():
+            self.loop.close()
+
+
+class ModbusTableTwin:
+    """Modbus TCP and/or RTU server of one drive, each behind its own fault relay.
+
+    ``faults`` (TCP) and ``rtu_faults`` are separate ``FaultPlan`` objects so that a fault armed for
+    one transport is never taken by the other. ``start()`` returns the endpoints.
+    """
+
+    def __init__(self, physics: TablePhysics, register_map: RegisterMap | None = None, *, unit: int = 1,
+                 tcp: bool = True, rtu: bool = True, tcp_port: int = 0, seed: int = 0) -> None:
+        self.map = register_map or RegisterMap()
+        self.faults = FaultPlan()  # TCP
+        self.rtu_faults = FaultPlan()
+        self.tcp_drive = ModbusDrive(physics, self.map, self.faults, unit)
+        self.rtu_drive = ModbusDrive(physics, self.map, self.rtu_faults, unit)
+        self.unit = unit
+        self._want_tcp, self._want_rtu, self._tcp_port, self._seed = tcp, rtu, tcp_port, seed
+        self._loop: _LoopThread | None = None
+        self._servers: list[Any] = []
+        self._proxy: TcpFaultProxy | None = None
+        self._relay: PtyRelay | None = None
+        self.endpoints: dict[str, Any] = {}
+
+    def start(self) -> dict[str, Any]:
+        self._loop = _LoopThread("modbus table twin")
+        try:
+            if self._want_tcp:
+                server = self._loop.run(self._start_tcp())
+                direct_port = server.transport.sockets[0].getsockname()[1]
+                self._proxy = TcpFaultProxy(("127.0.0.1", direct_port), self.faults, framer=modbus_tcp_reply_framer,
+                                            corrupt=_corrupt_mbap, port=self._tcp_port,
+                                            name="modbus tcp fault proxy").start()
+                self.endpoints.update(modbus_tcp_port=self._proxy.port, modbus_tcp_direct_port=direct_port)
+            if self._want_rtu:
+                self._relay = PtyRelay(self.rtu_faults, framer=modbus_rtu_reply_framer, seed=self._seed,
+                                       name="modbus rtu relay").start()
+                self._loop.run(self._start_rtu(self._relay.device_path))
+                self.endpoints.update(modbus_rtu_port=self._relay.host_path)
+        except BaseException:
+            self.stop()
+            raise
+        return dict(self.endpoints)
+
+    async def _start_tcp(self) -> ModbusTcpServer:
+        server = ModbusTcpServer(self.tcp_drive.device(), address=("127.0.0.1", 0))
+        await server.serve_forever(background=True)
+        self._servers.append(server)
+        return server
+
+    async def _start_rtu(self, path: str) -> ModbusSerialServer:
+        server = ModbusSerialServer(self.rtu_drive.device(), port=path, baudrate=115200, timeout=1.0)
+        await server.serve_forever(background=True)
+        self._servers.append(server)
+        return server
+
+    def stop(self) -> None:
+        if self._proxy is not None:
+            self._proxy.stop()
+            self._proxy = None
+        if self._loop is not None:
+            for server in self._servers:
+                try:
+                    self._loop.run(server.shutdown(), 5.0)
+                except Exception:
+                    pass
+            self._servers = []
+            self._loop.close()
+            self._loop = None
+        if self._relay is not None:
+            self._relay.stop()
+            self._relay = None
