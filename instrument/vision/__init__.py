@@ -1,5 +1,27 @@
-"""Image → cross: pre-processing, IGCF sub-pixel stripe centres, bisquare line fits (method.md §2)."""
+"""Image → cross: pre-processing, IGCF sub-pixel stripe centres, bisquare line fits (method.md §2).
 
+Main entry point :func:`locate_cross`; the building blocks are public too:
+:func:`igcf_centers` (vectorised IGCF over many cross-sections), :func:`fit_line_bisquare`
+(robust line fit) and :func:`find_stripes` (coarse stripe detection).
+"""
+
+from instrument.vision._detect import CoarseLine, Detection, find_stripes
+from instrument.vision._igcf import SectionCentres, half_window_for_width, igcf_centers
+from instrument.vision._linefit import LineFit, fit_line_bisquare
+from instrument.vision._locate import locate_cross
 from instrument.vision._types import CrossMeasurement, CrossNotFound, StripeLine
 
-__all__ = ["CrossMeasurement", "CrossNotFound", "StripeLine"]
+__all__ = [
+    "CoarseLine",
+    "CrossMeasurement",
+    "CrossNotFound",
+    "Detection",
+    "LineFit",
+    "SectionCentres",
+    "StripeLine",
+    "find_stripes",
+    "fit_line_bisquare",
+    "half_window_for_width",
+    "igcf_centers",
+    "locate_cross",
+]

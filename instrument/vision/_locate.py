@@ -1,0 +1,172 @@
+"""``locate_cross``: one camera image → the sub-pixel cross (method.md §2).
+
+Pipeline: coarse stripes on a block-averaged copy (``_detect``) → for each stripe a narrow band of
+full-resolution pixels following it (one gather, integers only) → IGCF on every cross-section of the
+band at once (``_igcf``), the crossing zone left out → bisquare line fit (``_linefit``) →
+intersection and angles (§2.4).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from instrument.vision._detect import CoarseLine, find_stripes
+from instrument.vision._igcf import igcf_band
+from instrument.vision._linefit import LineFit, fit_line_bisquare
+from instrument.vision._types import CrossMeasurement, CrossNotFound, StripeLine
+
+BAND_HALF_WIDTH = 12  # px each side of the coarse line: holds the stripe, its window and plateau
+MIN_SECTIONS = 30  # fewer usable cross-sections than this: the stripe is too short to fit
+MIN_AMPLITUDE_SIGMAS = 6.0  # sections whose peak is weaker than this many noise σ are left out
+DEFAULT_SATURATION = {np.dtype(np.uint8): 255, np.dtype(np.uint16): 65535}
+MIN_SIDE = 16
+
+
+class _StripeFit(NamedTuple):
+    line: LineFit
+    points: np.ndarray  # (N, 2) x, y of the sections' centres
+    saturated: int
+    peak: float
+
+
+def _check_image(img, saturation):
+    if not isinstance(img, np.ndarray):
+        raise TypeError(f"image must be a numpy array, got {type(img).__name__}")
+    if img.dtype not in DEFAULT_SATURATION:
+        raise TypeError(f"image must be uint8 or uint16 greyscale, got dtype {img.dtype}")
+    if img.ndim != 2:
+        raise ValueError(
+            f"image must be 2-D (rows, cols) greyscale, got shape {img.shape}"
+            + (" — convert colour images to one channel first" if img.ndim == 3 else "")
+        )
+    if min(img.shape) < MIN_SIDE:
+        raise ValueError(f"image is too small to hold a cross: shape {img.shape}, need ≥ {MIN_SIDE} px a side")
+    full_scale = DEFAULT_SATURATION[img.dtype]
+    if saturation is None:
+        return full_scale
+    if not (0 < float(saturation) <= full_scale):
+        raise ValueError(f"saturation must be in (0, {full_scale}] for {img.dtype} images, got {saturation}")
+    return float(saturation)
+
+
+def _fine_stripe(flat, shape, line: CoarseLine, other: CoarseLine, saturation, half_window, fallback_bg, min_sections):
+    """IGCF on the band around ``line`` and a bisquare line fit of the centres."""
+    rows, cols = shape
+    n_sections, across_len = (rows, cols) if line.vertical else (cols, rows)
+    s = np.arange(n_sections)
+    position = line.at(s)
+    # leave out the crossing: sections where the other stripe passes within the band
+    other_at = other.at(position)
+    reach = BAND_HALF_WIDTH * (1.0 + abs(other.slope)) + BAND_HALF_WIDTH
+    keep = np.abs(s - other_at) > reach
+    keep &= (position > -BAND_HALF_WIDTH) & (position < across_len - 1 + BAND_HALF_WIDTH)
+    s, position = s[keep], position[keep]
+    kind = "near-vertical" if line.vertical else "near-horizontal"
+    if len(s) < min_sections:
+        raise CrossNotFound(
+            f"{kind} stripe too short to fit: {len(s)} cross-sections outside the crossing zone "
+            f"(need ≥ {min_sections})"
+        )
+    base = np.rint(position).astype(np.intp) - BAND_HALF_WIDTH
+    across = base[None, :] + np.arange(2 * BAND_HALF_WIDTH + 1)[:, None]
+    if base.min() >= 0 and base.max() + 2 * BAND_HALF_WIDTH < across_len:
+        valid = None  # the whole band lies in the frame (the usual case): no masks needed
+    else:
+        valid = (across >= 0) & (across < across_len)
+        across = np.clip(across, 0, across_len - 1)
+    index = s[None, :] * cols + across if line.vertical else across * cols + s[None, :]
+    band = flat.take(index)
+
+    # background and noise from the band's outer edges (the stripe is far from them)
+    edges = np.r_[0:2, -2:0]
+    edge_values = band[edges].ravel() if valid is None else band[edges][valid[edges]]
+    if edge_values.size >= 16:
+        background = float(edge_values.mean())
+        noise = max(float(edge_values.std()), 0.5)
+    else:  # band cut off by the frame on both sides: use the frame's figures
+        background, noise = fallback_bg, 0.5
+    result = igcf_band(
+        band, valid, background, saturation, half_window, min_amplitude=MIN_AMPLITUDE_SIGMAS * noise
+    )
+    ok = result.valid
+    n_ok = int(ok.sum())
+    if n_ok < min_sections:
+        raise CrossNotFound(
+            f"{kind} stripe too short to fit: {n_ok} usable cross-sections (need ≥ {min_sections})"
+        )
+    centre = base[ok] + result.center[ok]
+    along = s[ok].astype(float)
+    points = np.column_stack([centre, along] if line.vertical else [along, centre])
+    fit = fit_line_bisquare(points, independent=1 if line.vertical else 0)
+    peak = float(result.peak[ok].max() + background)
+    return _StripeFit(fit, points, int(result.saturated.sum()), peak)
+
+
+def _stripe_line(fit: _StripeFit, vertical: bool) -> StripeLine:
+    line = fit.line
+    used = line.weights > 0
+    independent = fit.points[:, 1 if vertical else 0]
+    mean = float(np.average(independent, weights=line.weights))
+    dependent = line.intercept + line.slope * mean
+    direction = np.array([line.slope, 1.0] if vertical else [1.0, line.slope]) / np.hypot(1.0, line.slope)
+    point = np.array([dependent, mean] if vertical else [mean, dependent])
+    return StripeLine(point, direction, int(used.sum()), line.residual_rms, fit.saturated)
+
+
+def locate_cross(img, saturation=None, *, threshold=None, half_window=None, min_sections=MIN_SECTIONS):
+    """Locate a cross-line laser's cross in one camera image to sub-pixel precision (method.md §2).
+
+    Parameters
+    ----------
+    img : ndarray, 2-D, uint8 or uint16
+        The frame, ``img[row, col]``; pixel (row r, col c) is centred at image point (x=c, y=r).
+    saturation : float, optional
+        The sensor's saturation level; default 255 for uint8 and 65535 for uint16 (give 1023 or
+        4095 for 10- or 12-bit data in 16-bit words).
+    threshold : None, float or "otsu", optional
+        Binarisation level used to find the stripes: None = a set level of 15 % of the contrast
+        above background (at least 6 noise σ), a number = that grey level, "otsu" = Otsu's method.
+    half_window : int, optional
+        IGCF half-window h (window 2h+1 px); default from the stripe width, h = 2…4.
+    min_sections : int, optional
+        Fewest usable cross-sections per stripe (default 30).
+
+    Returns
+    -------
+    CrossMeasurement
+        Centre (x, y) px, angle θ = (φh+φv)/2 rad (positive from +x toward +y), both stripe lines
+        with quality figures, perpendicularity φv − φh rad, peak level.
+
+    Raises
+    ------
+    TypeError
+        ``img`` is not a uint8/uint16 numpy array.
+    ValueError
+        ``img`` is not 2-D or too small, or ``saturation`` is out of range.
+    CrossNotFound
+        No cross, only one stripe, more than one cross, or a stripe too short to fit; the message
+        says which.
+    """
+    saturation = _check_image(img, saturation)
+    detection = find_stripes(img, saturation, threshold)
+    flat = np.ascontiguousarray(img).ravel()
+    h_fit = _fine_stripe(flat, img.shape, detection.horizontal, detection.vertical, saturation,
+                         half_window, detection.background, min_sections)
+    v_fit = _fine_stripe(flat, img.shape, detection.vertical, detection.horizontal, saturation,
+                         half_window, detection.background, min_sections)
+    a_h, b_h = h_fit.line.intercept, h_fit.line.slope  # y = a_h + b_h·x
+    a_v, b_v = v_fit.line.intercept, v_fit.line.slope  # x = a_v + b_v·y
+    x = (a_v + b_v * a_h) / (1.0 - b_v * b_h)
+    center = np.array([x, a_h + b_h * x])
+    phi_h = float(np.arctan(b_h))  # atan2(dy, dx) with d = (1, b_h) toward +x
+    phi_v = float(-np.arctan(b_v))  # atan2(−dx, dy) with d = (b_v, 1) toward +y
+    return CrossMeasurement(
+        center=center,
+        angle=0.5 * (phi_h + phi_v),
+        horizontal=_stripe_line(h_fit, vertical=False),
+        vertical=_stripe_line(v_fit, vertical=True),
+        perpendicularity=phi_v - phi_h,
+        peak_level=max(h_fit.peak, v_fit.peak),
+    )
