@@ -1,5 +1,7 @@
 """Robot controllers: the ``Robot`` interface, the motion envelope, and adapters."""
 
+from typing import Any, Mapping
+
 from drivers.robot._envelope import MotionEnvelope
 from drivers.robot._interface import (
     EmergencyStop,
@@ -9,6 +11,19 @@ from drivers.robot._interface import (
     Robot,
     RobotState,
 )
+from drivers.robot._ur import URRobot, create_ur_robot
+
+ADAPTERS = {"ur_rtde": create_ur_robot}
+
+
+def create(config: Mapping[str, Any], *, name: str = "robot") -> Robot:
+    """Build the robot adapter that ``config["adapter"]`` names (``ur_rtde``); the other keys are
+    the adapter's settings (see ``URRobot``)."""
+    adapter = dict(config).get("adapter")
+    if adapter not in ADAPTERS:
+        raise ValueError(f"robot {name!r}: unknown adapter {adapter!r}; expected one of {sorted(ADAPTERS)}")
+    return ADAPTERS[adapter](config, name=name)
+
 
 __all__ = [
     "EmergencyStop",
@@ -18,4 +33,6 @@ __all__ = [
     "ProtectiveStop",
     "Robot",
     "RobotState",
+    "URRobot",
+    "create",
 ]
