@@ -148,14 +148,15 @@ class InstrumentScience:
 
     # -- dry run
     def visibility_problems(self, opr_in_m: np.ndarray) -> list[str]:
-        """Ask the forward model whether each beam's cross lands on its screen, when the core offers
-        ``instrument.pose.predict_crosses`` (or ``cross_visibility``); otherwise check nothing."""
-        import instrument.pose as pose_module  # type: ignore[import-not-found]
+        """Run the exact forward model (``instrument.pose.predict_measurements``): a cross that
+        would leave its camera's image, or a pose the model cannot map, is a problem."""
+        from instrument.pose import Pose, PoseError, predict_measurements  # type: ignore[attr-defined]
 
-        predictor = getattr(pose_module, "cross_visibility", None)
-        if predictor is None:
-            return []
-        return list(predictor(opr_in_m, self.geometry))
+        try:
+            predict_measurements(Pose.from_euler(opr_in_m[:3], opr_in_m[3:]), self.geometry)
+        except PoseError as exc:
+            return [f"cross not on its screen: {exc}"]
+        return []
 
     # -- ISO 9283
     def cube_points(self, center: np.ndarray, edge: float) -> tuple[list[str], np.ndarray]:

@@ -1,0 +1,36 @@
+"""``instrument export RUN --csv|--json``: the run's samples (CSV) or everything (JSON)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from procedures._cli_common import add_runs_dir, open_store
+from procedures._report import export_csv, export_json
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser("export", help="export a run as CSV (samples) or JSON (run, samples, events)")
+    parser.add_argument("run_id", metavar="RUN")
+    fmt = parser.add_mutually_exclusive_group(required=True)
+    fmt.add_argument("--csv", action="store_true")
+    fmt.add_argument("--json", action="store_true")
+    parser.add_argument("-o", "--output", default=None, help="file (default: stdout)")
+    add_runs_dir(parser)
+    parser.set_defaults(handler=run)
+
+
+def run(args) -> int:
+    with open_store(args) as store:
+        try:
+            r = store.get_run(args.run_id)
+        except KeyError as exc:
+            print(exc.args[0], file=sys.stderr)
+            return 1
+        samples = store.samples(r["id"])
+        text = export_csv(samples) if args.csv else export_json(r, samples, store.events(r["id"]))
+    if args.output:
+        Path(args.output).write_text(text, encoding="utf-8")
+    else:
+        sys.stdout.write(text)
+    return 0

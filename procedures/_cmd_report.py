@@ -1,0 +1,31 @@
+"""``instrument report RUN``: write the run's self-contained HTML report."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from procedures._cli_common import add_runs_dir, open_store
+from procedures._report import render_report
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser("report", help="write a run's HTML report")
+    parser.add_argument("run_id", metavar="RUN")
+    parser.add_argument("-o", "--output", default=None, help="HTML file (default: RUNS/<run>/report.html)")
+    add_runs_dir(parser)
+    parser.set_defaults(handler=run)
+
+
+def run(args) -> int:
+    with open_store(args) as store:
+        try:
+            r = store.get_run(args.run_id)
+        except KeyError as exc:
+            print(exc.args[0], file=sys.stderr)
+            return 1
+        html = render_report(r, store.samples(r["id"]), store.events(r["id"]))
+        path = Path(args.output) if args.output else store.run_dir(r["id"]) / "report.html"
+    path.write_text(html, encoding="utf-8")
+    print(path)
+    return 0

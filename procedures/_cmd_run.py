@@ -1,0 +1,38 @@
+"""``instrument run PROCEDURE --station STATION``: dry run, then measure; everything to the run store."""
+
+from __future__ import annotations
+
+import sys
+
+from procedures._cli_common import Display, add_display, add_runs_dir, console_pause_handler, drive, station_for
+from procedures._errors import ConfigError, RunError
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser("run", help="run a procedure on a station")
+    parser.add_argument("procedure", metavar="PROCEDURE", help="procedure file, or a built-in name "
+                        "(displacement_calibration, angle_calibration, iso9283_repeatability)")
+    parser.add_argument("--station", required=True, help="station YAML, or 'sim' to start the simulated cell")
+    parser.add_argument("--seed", type=int, default=0, help="simulated cell seed (with --station sim)")
+    parser.add_argument("--pause-timeout", type=float, default=3600.0,
+                        help="seconds a paused run waits before it is left paused (non-interactive)")
+    add_runs_dir(parser)
+    add_display(parser)
+    parser.set_defaults(handler=run)
+
+
+def run(args) -> int:
+    from procedures._api import open_engine
+
+    mode = "jsonl" if args.jsonl else "quiet" if args.quiet else "bar"
+    try:
+        with station_for(args.station, args.runs_dir, args.seed) as station:
+            with open_engine(args.runs_dir, procedure=args.procedure, station=station, listener=Display(mode),
+                             pause_handler=None if args.jsonl else console_pause_handler,
+                             pause_timeout_s=args.pause_timeout) as engine:
+                if not args.jsonl:
+                    print(f"run {engine.run_id} ({engine.procedure.procedure})", file=sys.stderr)
+                return drive(engine, args)
+    except (ConfigError, RunError) as exc:
+        print(str(exc), file=sys.stderr)
+        return 1
