@@ -60,6 +60,7 @@ from instrument.compensation._record import (
     CalibrationRecordError,
     OutOfCalibrationRangeWarning,
     Provenance,
+    calibrate,
 )
 from instrument.compensation._spline import SplineCurve, fit_spline_curve
 
@@ -95,6 +96,7 @@ __all__ = [
     "SyntheticScenario",
     "ZeroCurve",
     "align_groups",
+    "calibrate",
     "curve_from_dict",
     "default_compensators",
     "display_unit",

@@ -213,3 +213,31 @@ class CalibrationRecord:
             else:
                 corrected[component], flags[component] = float(value), False
         return corrected, flags
+
+
+def calibrate(calibration_data, compensators, provenance: Provenance, *, method: str | None = None,
+              evaluate_first: bool = True, k: int = 5) -> CalibrationRecord:
+    """Evaluate the compensators, fit the chosen one per component on all data, build the record.
+
+    Parameters
+    ----------
+    calibration_data : CalibrationData, a sequence of them, or a mapping component → data
+    compensators : mapping name → Compensator
+    method : name of the compensator to use for every component; None keeps, per component, the
+        one with the lowest k-fold held-out RMS (method.md §4: keep whichever wins)
+    evaluate_first : run ``evaluate`` (needed when ``method`` is None)
+    """
+    from instrument.compensation._data import as_data_mapping
+    from instrument.compensation._evaluate import evaluate
+
+    data = as_data_mapping(calibration_data)
+    if method is not None and method not in compensators:
+        raise ValueError(f"unknown compensator {method!r}; have {sorted(compensators)}")
+    if method is None and not evaluate_first:
+        raise ValueError("choosing the best compensator per component needs the evaluation")
+    table = evaluate(compensators, data, k=k) if evaluate_first else None
+    models = {}
+    for component, d in data.items():
+        name = method if method is not None else table.best(component)
+        models[component] = compensators[name].fit(d.measured, d.error, d.group, d.point)
+    return CalibrationRecord(method or "per-component best", models, provenance, evaluation=table)
