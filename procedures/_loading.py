@@ -65,12 +65,23 @@ def _inner_model(annotation: Any) -> Any:
     return None
 
 
+def _refine(loc: tuple, error: dict, marked: MarkedYaml) -> tuple:
+    """A model-level check names its field first ("groups is 2 but ..."): point at that field."""
+    if error["type"] != "value_error":
+        return loc
+    words = error["msg"].replace("Value error, ", "").split()
+    if words and loc + (words[0],) in marked.key_lines:
+        return loc + (words[0],)
+    return loc
+
+
 def _problems(exc: ValidationError, marked: MarkedYaml, model: type[BaseModel], prefix: tuple = ()) -> list[str]:
-    problems = []
+    found = []
     for error in exc.errors():
-        loc = prefix + tuple(error["loc"])
-        problems.append(f"{marked.where(loc)}: {_field_name(loc)}: {_expected(error, model, tuple(error['loc']))}")
-    return problems
+        loc = _refine(prefix + tuple(error["loc"]), error, marked)
+        found.append((marked.line_of(loc), f"{marked.where(loc)}: {_field_name(loc)}: "
+                                            f"{_expected(error, model, tuple(error['loc']))}"))
+    return [text for _, text in sorted(found, key=lambda item: item[0])]
 
 
 def load_station(path: str | Path, *, check_geometry: bool = True) -> StationFile:

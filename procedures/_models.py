@@ -181,7 +181,8 @@ class DisplacementParameters(MotionParameters):
         if self.stop_mm <= self.start_mm:
             raise ValueError(f"stop_mm ({self.stop_mm}) must be above start_mm ({self.start_mm})")
         if len(self.group_start_offsets_mm) != self.groups:
-            raise ValueError(f"group_start_offsets_mm has {len(self.group_start_offsets_mm)} entries, expected one per group ({self.groups})")
+            raise ValueError(f"groups is {self.groups} but group_start_offsets_mm has "
+                             f"{len(self.group_start_offsets_mm)} entries: expected one offset per group")
         if len(set(self.axes)) != len(self.axes):
             raise ValueError(f"axes repeat an axis: {self.axes}")
         return self
@@ -206,7 +207,8 @@ class AngleParameters(MotionParameters):
         if self.stop_deg <= self.start_deg:
             raise ValueError(f"stop_deg ({self.stop_deg}) must be above start_deg ({self.start_deg})")
         if len(self.group_start_offsets_deg) != self.groups:
-            raise ValueError(f"group_start_offsets_deg has {len(self.group_start_offsets_deg)} entries, expected one per group ({self.groups})")
+            raise ValueError(f"groups is {self.groups} but group_start_offsets_deg has "
+                             f"{len(self.group_start_offsets_deg)} entries: expected one offset per group")
         if len(set(self.axes)) != len(self.axes):
             raise ValueError(f"axes repeat an axis: {self.axes}")
         return self

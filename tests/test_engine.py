@@ -1,0 +1,221 @@
+"""The engine on the fake cell: the three procedures, dry run, pause/resume, protective stop, abort."""
+
+import threading
+
+import numpy as np
+import pytest
+
+from procedures._api import open_engine
+from procedures._errors import RunError
+from tests.fakes import FakeCell, FakeScience, write_station
+
+
+def _procedure(tmp_path, kind, **params):
+    body = ", ".join(f"{k}: {v}" for k, v in {"settle_time_s": 0, "frames_per_pose": 1, **params}.items())
+    path = tmp_path / f"{kind}.yaml"
+    path.write_text(f"procedure: {kind}\nparameters: {{{body}}}\n")
+    return path
+
+
+@pytest.fixture
+def setup(tmp_path):
+    truth = tmp_path / "truth.jsonl"
+    station = write_station(tmp_path / "station.yaml", truth_log=str(truth))
+    cell = FakeCell(seed=2, truth_log=truth)
+    return tmp_path, station, cell
+
+
+def _engine(tmp_path, station, cell, procedure=None, run_id=None, **kwargs):
+    return open_engine(tmp_path / "runs", procedure=procedure, station=station, run_id=run_id,
+                       science=FakeScience(cell), devices=cell.devices(), operator=cell.operator, **kwargs)
+
+
+def _states(store, run_id):
+    return [e["message"].split(":")[0] for e in store.events(run_id) if e["kind"] == "state"]
+
+
+def test_iso_run_matches_truth(setup):
+    tmp_path, station, cell = setup
+    proc = _procedure(tmp_path, "iso9283_repeatability", cycles=12)
+    with _engine(tmp_path, station, cell, proc) as engine:
+        assert engine.execute() == "FINISHED"
+        run = engine.store.get_run(engine.run_id)
+        samples = engine.store.samples(engine.run_id)
+    assert len(samples) == run["total_steps"] == 5 + 12 * 5
+    results = run["results"]
+    assert results["order"] == ["P1", "P5", "P4", "P3", "P2"]
+    assert [s.label for s in samples[5:10]] == ["P1", "P5", "P4", "P3", "P2"]
+    for label in results["order"]:
+        point = results["points"][label]
+        assert point["n"] == 12
+        # Measured and true RP_l differ only by the fake instrument's noise (0.3 µm) and the slope of
+        # its systematic error (≤ 2.5e-3 × scatter): well under 1 µm for ~20 µm figures.
+        assert point["stats"]["rp_l"] == pytest.approx(point["true_stats"]["rp_l"], abs=1e-6)
+        # Robot repeatability σ = 5 µm per axis, plus 2e-5 rad × 0.07 m lever: RP_l ≈ 3.5σ_eff.
+        assert 8e-6 < point["stats"]["rp_l"] < 40e-6
+
+
+def test_calibration_runs_write_records(setup):
+    tmp_path, station, cell = setup
+    for kind in ("displacement_calibration", "angle_calibration"):
+        proc = _procedure(tmp_path, kind, repeats=2)
+        with _engine(tmp_path, station, cell, proc) as engine:
+            assert engine.execute() == "FINISHED"
+            run = engine.store.get_run(engine.run_id)
+        results = run["results"]
+        assert run["calibration_record_id"] == results["record_id"]
+        assert (tmp_path / "runs" / run["id"] / f"calibration-{kind.split('_')[0]}.json").is_file()
+        for name, curve in results["curves"].items():
+            before, after = np.abs(curve["error_before"]).max(), np.abs(curve["error_after"]).max()
+            assert after < before / 5, (name, before, after)
+    assert cell.log == ["align x", "align y", "align z", "mount table:x", "mount table:y", "mount table:z",
+                        "mount robot"]
+
+
+def test_displacement_reference_is_interferometer_relative_to_group_start(setup):
+    tmp_path, station, cell = setup
+    proc = _procedure(tmp_path, "displacement_calibration", axes="[y]", repeats=1)
+    with _engine(tmp_path, station, cell, proc) as engine:
+        engine.execute()
+        samples = engine.store.samples(engine.run_id)
+    for s in samples:
+        # the reference is the nominal start plus the interferometer reading; it must follow the
+        # commanded position to within the robot's repeatability
+        assert s.reference["value"] == pytest.approx(s.meta["nominal"], abs=40e-6)
+
+
+def test_dry_run_refuses_targets_outside_the_envelope(setup):
+    tmp_path, station, cell = setup
+    proc = _procedure(tmp_path, "iso9283_repeatability", cycles=2, cube_center_m="[0.035, 0.035, 0.3]")
+    with _engine(tmp_path, station, cell, proc) as engine:
+        assert engine.execute() == "FAILED"
+        run = engine.store.get_run(engine.run_id)
+    assert "dry run failed" in run["reason"] and "outside the envelope" in run["reason"]
+    assert "transform/c000/P1" in run["reason"]
+    assert cell.moves == 0
+
+
+def test_dry_run_checks_crosses_on_screens(setup):
+    tmp_path, station, cell = setup
+    proc = _procedure(tmp_path, "iso9283_repeatability", cycles=2, cube_center_m="[0.035, 0.12, 0.035]")
+    with _engine(tmp_path, station, cell, proc) as engine:
+        assert engine.execute() == "FAILED"
+        assert "cross off screen" in engine.store.get_run(engine.run_id)["reason"]
+    assert cell.moves == 0
+
+
+def test_pause_and_resume_at_a_safe_point(setup):
+    tmp_path, station, cell = setup
+    proc = _procedure(tmp_path, "iso9283_repeatability", cycles=3)
+    paused = threading.Event()
+
+    def listener(event):
+        if event["event"] == "progress" and event["done"] == 4:
+            engine.request_pause("test")
+        if event["event"] == "state" and event["state"] == "PAUSED":
+            paused.set()
+
+    def resumer():
+        assert paused.wait(30)
+        engine.resume()
+
+    with _engine(tmp_path, station, cell, proc, listener=listener) as engine:
+        thread = threading.Thread(target=resumer)
+        thread.start()
+        assert engine.execute() == "FINISHED"
+        thread.join()
+        assert _states(engine.store, engine.run_id) == ["RUNNING", "PAUSED", "RUNNING", "FINISHED"]
+        assert len(engine.store.samples(engine.run_id)) == 20
+
+
+def test_detached_pause_continues_later_without_duplicates(setup):
+    tmp_path, station, cell = setup
+    proc = _procedure(tmp_path, "iso9283_repeatability", cycles=3)
+
+    def listener(event):
+        if event["event"] == "progress" and event["done"] == 7:
+            engine.request_pause("end of shift")
+
+    with _engine(tmp_path, station, cell, proc, listener=listener, pause_timeout_s=0.1) as engine:
+        assert engine.execute() == "PAUSED"
+        run_id = engine.run_id
+        assert engine.store.committed_steps(run_id) == set(range(7))
+    with _engine(tmp_path, None, cell, run_id=run_id) as engine:
+        assert engine.execute() == "FINISHED"
+        assert [s.step_index for s in engine.store.samples(run_id)] == list(range(20))
+
+
+def test_protective_stop_pauses_and_retries_the_step(setup):
+    tmp_path, station, cell = setup
+    cell.protective_stop_on_moves = {6}
+    proc = _procedure(tmp_path, "iso9283_repeatability", cycles=2)
+
+    def handler(engine):
+        assert engine.state == "PAUSED"
+        cell.robot.clear_protective_stop()  # the operator clears the stop, then resumes
+        return "resume"
+
+    with _engine(tmp_path, station, cell, proc, pause_handler=handler) as engine:
+        assert engine.execute() == "FINISHED"
+        events = engine.store.events(engine.run_id)
+        samples = engine.store.samples(engine.run_id)
+    assert any(e["kind"] == "state" and "ProtectiveStop" in e["message"] for e in events)
+    assert [s.step_index for s in samples] == list(range(15))
+    assert cell.robot.stops >= 1
+
+
+def test_abort_while_paused_brings_devices_to_a_safe_state(setup):
+    tmp_path, station, cell = setup
+    proc = _procedure(tmp_path, "iso9283_repeatability", cycles=2)
+
+    def listener(event):
+        if event["event"] == "progress" and event["done"] == 3:
+            engine.request_pause()
+
+    with _engine(tmp_path, station, cell, proc, listener=listener, pause_handler=lambda e: "abort") as engine:
+        assert engine.execute() == "ABORTED"
+        assert engine.store.get_run(engine.run_id)["exit_status"] == "abort"
+        with pytest.raises(RunError):
+            engine.execute()  # an aborted run is final
+    assert cell.robot.stops >= 1
+
+
+def test_keyboard_interrupt_during_a_move_aborts(setup):
+    tmp_path, station, cell = setup
+    proc = _procedure(tmp_path, "iso9283_repeatability", cycles=2)
+    original = cell.robot.move_linear
+
+    def interrupted(pose, *args, **kwargs):
+        if cell.moves == 4:
+            raise KeyboardInterrupt("second Ctrl-C")
+        return original(pose, *args, **kwargs)
+
+    cell.robot.move_linear = interrupted
+    with _engine(tmp_path, station, cell, proc) as engine:
+        assert engine.execute() == "ABORTED"
+        assert len(engine.store.samples(engine.run_id)) == 4
+    assert cell.robot.stops >= 1
+
+
+def test_failed_measurements_are_recorded_with_their_frames(setup):
+    tmp_path, station, cell = setup
+    cell.fail_measures = 3  # the first pose fails on every attempt (retries_per_pose = 2)
+    proc = _procedure(tmp_path, "iso9283_repeatability", cycles=2)
+    with _engine(tmp_path, station, cell, proc) as engine:
+        assert engine.execute() == "FINISHED"
+        samples = engine.store.samples(engine.run_id)
+        run_dir = engine.store.run_dir(engine.run_id)
+    assert not samples[0].ok and "no cross found" in samples[0].error
+    assert len(samples[0].frames) == 9 and all((run_dir / f).is_file() for f in samples[0].frames)
+    assert all(s.ok for s in samples[1:])
+
+
+def test_too_many_failures_fail_the_run(setup):
+    tmp_path, station, cell = setup
+    cell.fail_grabs = 100
+    proc = _procedure(tmp_path, "iso9283_repeatability", cycles=2, max_failed_samples=1, retries_per_pose=0)
+    with _engine(tmp_path, station, cell, proc) as engine:
+        assert engine.execute() == "FAILED"
+        run = engine.store.get_run(engine.run_id)
+    assert "max_failed_samples" in run["reason"]
+    assert run["exit_status"] == "fail"
