@@ -166,7 +166,7 @@ def solve_pose(
     problem = _StripeProblem(crosses, geometry)
     x0 = np.concatenate([start.translation, start.euler])
     result = least_squares(
-        problem.residuals, x0, jac=problem.jacobian, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15, max_nfev=100
+        problem.residuals, x0, jac=problem.jacobian, method="lm", xtol=1e-12, ftol=1e-12, gtol=1e-15, max_nfev=100
     )
     if not np.all(np.isfinite(result.x)):
         raise PoseError("pose solver diverged (non-finite parameters)")
