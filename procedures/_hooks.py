@@ -110,7 +110,7 @@ class HookRunner:
         """Run every hook subscribed to ``event["event"]``; returns the failure messages."""
         failures = []
         for spec in self.hooks:
-            if event["event"] not in spec.on:
+            if event["event"] not in spec.events:
                 continue
             what = spec.call or spec.entry_point or spec.shell or spec.http
             try:

@@ -31,12 +31,20 @@ class _Strict(BaseModel):
 class HookSpec(_Strict):
     """One hook: exactly one of ``call``, ``entry_point``, ``shell``, ``http``."""
 
-    on: list[Event] = Field(default_factory=lambda: list(EVENTS), description="events that trigger the hook")
+    events: list[Event] = Field(default_factory=lambda: list(EVENTS), description="events that trigger the hook")
     call: str | None = Field(None, description="a Python callable 'package.module:function', called with the event dict")
     entry_point: str | None = Field(None, description="name of an entry point in group 'opr_instrument.hooks'")
     shell: str | None = Field(None, description="a shell command; the event JSON is on stdin and in $INSTRUMENT_EVENT")
     http: str | None = Field(None, description="a loopback URL (http://127.x.x.x:port/path) that receives a POST of the event JSON")
     timeout_s: float = Field(10.0, gt=0, le=600, description="seconds before the hook is abandoned")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _yaml_on_key(cls, data: Any) -> Any:
+        # YAML 1.1 reads an unquoted ``on:`` key as the boolean True; take it as ``events``.
+        if isinstance(data, dict) and True in data and "events" not in data:
+            data = {("events" if k is True else k): v for k, v in data.items()}
+        return data
 
     @model_validator(mode="after")
     def _exactly_one(self) -> "HookSpec":

@@ -373,3 +373,19 @@ def main(argv: list[str]) -> int:
 
 if __name__ == "__main__":
     sys.exit(main(sys.argv[1:]))
+
+
+RECEIVED_EVENTS: list[dict] = []
+
+
+def record_event(event: dict) -> None:
+    """A hook target (``tests.fakes:record_event``)."""
+    RECEIVED_EVENTS.append(event)
+
+
+def failing_hook(event: dict) -> None:
+    raise RuntimeError("the cell PLC is offline")
+
+
+def slow_hook(event: dict) -> None:
+    time.sleep(3.0)

@@ -1,0 +1,82 @@
+"""The run-related CLI subcommands, on a store filled by a fake run."""
+
+import json
+import textwrap
+
+import pytest
+
+from procedures._api import open_engine
+from procedures.cli import main
+from tests.fakes import FakeCell, FakeScience, write_station
+
+
+@pytest.fixture(scope="module")
+def runs_dir(tmp_path_factory):
+    tmp_path = tmp_path_factory.mktemp("cli")
+    station = write_station(tmp_path / "station.yaml")
+    cell = FakeCell(seed=9)
+    proc = tmp_path / "iso.yaml"
+    proc.write_text("procedure: iso9283_repeatability\nparameters: {cycles: 3, settle_time_s: 0, frames_per_pose: 1}\n")
+    with open_engine(tmp_path / "runs", procedure=proc, station=station, science=FakeScience(cell),
+                     devices=cell.devices(), operator=cell.operator) as engine:
+        engine.execute()
+        run_id = engine.run_id
+    return tmp_path / "runs", run_id
+
+
+def test_validate_ok_and_bad(tmp_path, capsys):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(textwrap.dedent("""\
+        procedure: iso9283_repeatability
+        parameters:
+          cycles: thirty
+        """))
+    assert main(["validate", str(bad)]) == 1
+    err = capsys.readouterr().err
+    assert f"{bad}:3: parameters.cycles: input should be a valid integer" in err
+    station = write_station(tmp_path / "station.yaml")
+    text = station.read_text().replace("max_speed: 0.5", "max_speed: -1")
+    station.write_text(text)
+    line = text.splitlines().index("  max_speed: -1") + 1
+    assert main(["validate", str(station)]) == 1
+    assert f"{station}:{line}: envelope.max_speed: input should be greater than 0" in capsys.readouterr().err
+
+
+def test_validate_shipped_procedures(capsys):
+    from procedures._loading import PACKAGE_DIR
+
+    files = [str(PACKAGE_DIR / f"{n}.yaml") for n in ("displacement_calibration", "angle_calibration",
+                                                       "iso9283_repeatability")]
+    assert main(["validate", *files]) == 0
+    assert capsys.readouterr().out.count(": OK (") == 3
+
+
+def test_runs_and_show(runs_dir, capsys):
+    runs, run_id = runs_dir
+    assert main(["runs", "--runs-dir", str(runs)]) == 0
+    out = capsys.readouterr().out
+    assert run_id[:12] in out and "FINISHED" in out and "20/20" in out
+    assert main(["runs", "--runs-dir", str(runs), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out.splitlines()[0])["id"] == run_id
+    assert main(["show", run_id[:8], "--runs-dir", str(runs)]) == 0
+    out = capsys.readouterr().out
+    assert "RP_l (µm)" in out and "P5" in out and "20 ok, 0 failed" in out
+    assert main(["show", "nosuchrun", "--runs-dir", str(runs)]) == 1
+
+
+def test_export_and_report(runs_dir, tmp_path, capsys):
+    runs, run_id = runs_dir
+    assert main(["export", run_id, "--csv", "--runs-dir", str(runs)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("run_id,step_index") and len(lines) == 21
+    out = tmp_path / "run.json"
+    assert main(["export", run_id, "--json", "-o", str(out), "--runs-dir", str(runs)]) == 0
+    assert len(json.loads(out.read_text())["samples"]) == 20
+    assert main(["report", run_id, "--runs-dir", str(runs)]) == 0
+    path = capsys.readouterr().out.strip()
+    assert path.endswith("report.html") and "ISO 9283" in open(path, encoding="utf-8").read()
+
+
+def test_missing_store_is_a_clear_message(tmp_path):
+    with pytest.raises(SystemExit, match="no run store"):
+        main(["runs", "--runs-dir", str(tmp_path / "none")])
