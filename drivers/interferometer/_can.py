@@ -27,6 +27,7 @@ from drivers.interferometer._interface import BeamInterrupted, FeedGap
 from drivers.interferometer._layout import (
     COUNTER_MODULUS,
     OPCODE_DATUM,
+    OPCODE_SYNC,
     REPLY_DONE,
     FrameLayout,
     ReplyFrame,
@@ -67,13 +68,17 @@ class CanInterferometer:
     reconnect_interval : float
         Seconds between attempts to re-open a lost connection.
     command_timeout : float
-        Seconds to wait for the head's reply to a command (``zero``).
+        Seconds to wait for the head's reply to a command (``zero``, the ``average`` barrier).
+    sync_before_average : bool
+        ``average`` first sends a sync command and averages only samples after its reply, i.e.
+        samples taken after the call (not frames still in flight from before, e.g. before the
+        robot settled). Costs one round trip (~1-2 ms).
     """
 
     def __init__(self, *, name: str, bus_kwargs: Mapping[str, Any], layout: FrameLayout | None = None,
                  ring_capacity: int = 65536, open_timeout: float = 5.0, open_attempts: int = 5,
                  stall_timeout: float | None = None, reconnect_interval: float = 0.5,
-                 command_timeout: float = 2.0) -> None:
+                 command_timeout: float = 2.0, sync_before_average: bool = True) -> None:
         self.name = name
         self.layout = layout or FrameLayout()
         self._bus_kwargs = dict(bus_kwargs)
@@ -89,6 +94,7 @@ class CanInterferometer:
                              "the 8-bit counter could wrap unnoticed")
         self.reconnect_interval = float(reconnect_interval)
         self.command_timeout = float(command_timeout)
+        self.sync_before_average = bool(sync_before_average)
         self._buffer = FeedBuffer(ring_capacity, name)
         self._buffer.set_failure_probe(self._connection_failure)
 
@@ -113,8 +119,9 @@ class CanInterferometer:
         self._status: StatusFrame | None = None
         self._status_mono = 0.0
         self._reply_cond = threading.Condition()
-        self._replies: dict[int, ReplyFrame] = {}
+        self._replies: dict[int, tuple[ReplyFrame, int]] = {}  # token -> (reply, next sample seq)
         self._tokens = itertools.cycle(range(1, 256))
+        self._link_epoch = 0  # +1 at every lost connection: a reply can never cross it
 
     # ------------------------------------------------------------------------------ constructors
     @classmethod
@@ -195,7 +202,8 @@ class CanInterferometer:
         timeout = duration + 2.0 if timeout is None else float(timeout)
         self._require_running("average")
         deadline = time.monotonic() + timeout
-        return self._buffer.average(count, deadline, max(self.stall_timeout, 0.5), "average")
+        start = self._command(OPCODE_SYNC, "average", timeout)[1] if self.sync_before_average else None
+        return self._buffer.average(count, deadline, max(self.stall_timeout, 0.5), "average", start)
 
     def samples(self, timeout: float = 1.0) -> Iterator[CanSample]:
         """Iterate over every sample from now on (check ``sample.defect`` for discontinuities).
@@ -213,9 +221,12 @@ class CanInterferometer:
         Raises ``BeamInterrupted`` if the head refuses (beam not OK), ``DeviceTimeout`` if it does
         not answer, ``DeviceConnectionError`` if the bus is down."""
         self._require_running("zero")
-        reply = self._command(OPCODE_DATUM, "zero", timeout)
+        reply, first_after = self._command(OPCODE_DATUM, "zero", timeout)
         if reply.result != REPLY_DONE:
             raise BeamInterrupted(self.name, "zero", "the head refused to set the datum: beam not OK")
+        # Return once a sample relative to the new datum is in, so latest() agrees with the datum.
+        wait = self.command_timeout if timeout is None else float(timeout)
+        self._buffer.get(first_after, time.monotonic() + wait, "zero")
 
     # ------------------------------------------------------------------------------ health
     def stats(self) -> dict[str, Any]:
@@ -251,14 +262,15 @@ class CanInterferometer:
             return DeviceConnectionError(self.name, "read", "the feed is closed")
         return self._connection_error
 
-    def _command(self, opcode: int, operation: str, timeout: float | None) -> ReplyFrame:
+    def _command(self, opcode: int, operation: str, timeout: float | None) -> tuple[ReplyFrame, int]:
+        """Send a command; return the reply and the sequence number of the first sample after it."""
         token = next(self._tokens)
         data = encode_command(self.layout.command_id, opcode, token)
         message = can.Message(arbitration_id=self.layout.command_id, data=data, is_extended_id=False)
         with self._reply_cond:
             self._replies.pop(token, None)
         with self._bus_lock:
-            bus = self._bus
+            bus, epoch = self._bus, self._link_epoch
             if bus is None:
                 raise self._connection_error or DeviceConnectionError(self.name, operation, "bus not open")
             try:
@@ -268,8 +280,14 @@ class CanInterferometer:
         deadline = time.monotonic() + (self.command_timeout if timeout is None else float(timeout))
         with self._reply_cond:
             while token not in self._replies:
+                if self._link_epoch != epoch:
+                    raise DeviceConnectionError(self.name, operation, "connection lost while waiting for the "
+                                                f"reply to command 0x{opcode:02X}")
                 remaining = deadline - time.monotonic()
                 if remaining <= 0:
+                    failure = self._connection_failure()
+                    if failure is not None:
+                        raise failure
                     raise DeviceTimeout(self.name, operation, f"no reply to command 0x{opcode:02X} within "
                                         f"{self.command_timeout if timeout is None else timeout} s")
                 self._reply_cond.wait(remaining)
@@ -331,7 +349,7 @@ class CanInterferometer:
             elif can_id == layout.reply_id:
                 reply = decode_reply(self.name, can_id, data)
                 with self._reply_cond:
-                    self._replies[reply.token] = reply
+                    self._replies[reply.token] = (reply, self._buffer.next_seq)
                     self._reply_cond.notify_all()
             else:
                 self._count("foreign_frames")
@@ -396,7 +414,10 @@ class CanInterferometer:
         with self._bus_lock:
             if self._bus is bus:
                 self._bus = None
+            self._link_epoch += 1
         _shutdown(bus)
+        with self._reply_cond:
+            self._reply_cond.notify_all()
         self._connection_error = DeviceConnectionError(self.name, "receive", f"connection lost: {cause}")
         self._pending_defect = "connection lost and re-opened"
         self._buffer.wake()

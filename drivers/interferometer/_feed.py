@@ -111,12 +111,13 @@ class FeedBuffer:
             yield self.get(seq, time.monotonic() + timeout, operation)
             seq += 1
 
-    def average(self, count: int, deadline: float, sample_timeout: float, operation: str) -> float:
-        """Mean displacement of the next ``count`` samples, all contiguous, beam OK, datum set.
-
-        Fails at the first bad sample instead of waiting out the window.
+    def average(self, count: int, deadline: float, sample_timeout: float, operation: str,
+                start: int | None = None) -> float:
+        """Mean displacement of ``count`` samples from sequence number ``start`` (default: the next
+        to arrive), all contiguous, beam OK, datum set. Fails at the first bad sample instead of
+        waiting out the window.
         """
-        seq = self.next_seq
+        seq = self.next_seq if start is None else start
         total = 0.0
         for index in range(count):
             sample = self.get(seq + index, min(deadline, time.monotonic() + sample_timeout), operation)

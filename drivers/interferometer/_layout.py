@@ -26,10 +26,14 @@ Status / heartbeat (``status_id``, default 0x281, ``status_rate`` Hz)::
     6     uint8  heartbeat counter
     7     uint8  CRC-8
 
+The head executes a command between two samples and sends the reply before the next
+displacement frame, so every displacement frame after a reply was sampled after the command
+(``sync`` is used as a barrier: "only samples taken from now on").
+
 Command (host → head, ``command_id``, default 0x601) and reply (``reply_id``, default 0x581)::
 
-    command: 0 opcode (1 = set datum), 1 token, 2..6 zero, 7 CRC-8
-    reply:   0 opcode, 1 token, 2 result (0 = done, 1 = refused: beam not OK),
+    command: 0 opcode (1 = set datum, 2 = sync), 1 token, 2..6 zero, 7 CRC-8
+    reply:   0 opcode, 1 token, 2 result (0 = done, 1 = refused: beam not OK, 2 = unknown opcode),
              3 datum generation, 4..6 zero, 7 CRC-8
 """
 
@@ -41,6 +45,7 @@ from typing import Any, Mapping
 from drivers._errors import ProtocolError
 
 OPCODE_DATUM = 0x01
+OPCODE_SYNC = 0x02  # no action; the reply marks the point after which every sample is newer
 REPLY_DONE = 0
 REPLY_REFUSED = 1
 

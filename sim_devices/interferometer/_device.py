@@ -159,6 +159,8 @@ class InterferometerDevice:
             self._count("commands")
             if opcode == _frames.OPCODE_DATUM:
                 result = 0 if self.head.set_datum() else 1
+            elif opcode == _frames.OPCODE_SYNC:
+                result = 0  # nothing to do: the reply's place in the stream is the point
             else:
                 result = 2  # unknown opcode
             reply = _frames.reply_frame(self.layout.reply_id, opcode, token, result, self.head.datum_generation)

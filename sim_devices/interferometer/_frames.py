@@ -11,6 +11,7 @@ import struct
 
 BEAM_OK, SIGNAL_LOW, DATUM_SET, OVERRANGE = 0x01, 0x02, 0x04, 0x08
 OPCODE_DATUM = 0x01
+OPCODE_SYNC = 0x02
 AXIS_CODES = {"x": 0, "y": 1, "z": 2}
 INT40_MAX = (1 << 39) - 1
 

@@ -181,6 +181,7 @@ class SocketcandServer:
             client.state = "raw"
             client.send(b"< ok >")
         elif words[0] == "send" and client.state == "raw":
+            client.raw_from = min(client.raw_from, time.monotonic())  # it is past its handshake read
             self._handle_send(client, words[1:])
         elif words[0] == "echo":
             client.send(b"< echo >")
