@@ -5,6 +5,7 @@ All results are SI (metres, radians); reports convert.
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -56,7 +57,10 @@ def analyse_calibration(engine: "RunEngine", samples) -> dict[str, Any]:
         data.setdefault(component, []).append(entry)
     if not data:
         raise ValueError("no successful calibration samples to fit")
-    fit = engine.science.fit_calibration(kind, data)
+    references = ["laser interferometer"] if displacement else ["rotary table encoder"]
+    fit = engine.science.fit_calibration(kind, data, {
+        "run_id": engine.run_id, "date": time.strftime("%Y-%m-%dT%H:%M:%S"),
+        "references": [{"instrument": name, "components": sorted(data)} for name in references]})
     record_path = engine.params.record_path
     path = Path(record_path) if record_path else engine.store.run_dir(engine.run_id) / f"calibration-{kind}.json"
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -17,8 +17,8 @@ from typing import Any, Mapping, Protocol, runtime_checkable
 
 import numpy as np
 
-COMPONENTS = ("x", "y", "z", "alpha", "theta", "gamma")  # order of a (6,) pose in M
-ANGLE_COMPONENT = {"x": "alpha", "y": "theta", "z": "gamma"}  # rotation about M's axis k
+COMPONENTS = ("x", "y", "z", "a", "b", "c")  # order of a (6,) pose in M; a, b, c = alpha, theta, gamma
+ANGLE_COMPONENT = {"x": "a", "y": "b", "z": "c"}  # rotation about M's axis k
 
 
 class MeasurementFailed(ValueError):
@@ -78,7 +78,7 @@ class Science(Protocol):
 
     def iso_statistics(self, poses: np.ndarray, commanded: np.ndarray) -> dict[str, Any]: ...
 
-    def fit_calibration(self, kind: str, data: dict[str, list[dict]]) -> CalibrationResult: ...
+    def fit_calibration(self, kind: str, data: dict[str, list[dict]], provenance: dict) -> CalibrationResult: ...
 
     def load_compensator(self, path: str | Path) -> Compensator: ...
 
@@ -162,12 +162,8 @@ class InstrumentScience:
     def cube_points(self, center: np.ndarray, edge: float) -> tuple[list[str], np.ndarray]:
         from instrument.iso9283 import iso_cube_points  # type: ignore[attr-defined]
 
-        points = iso_cube_points(center, edge)
-        if isinstance(points, Mapping):
-            return ["P1", "P5", "P4", "P3", "P2"], np.array([points[k] for k in ("P1", "P5", "P4", "P3", "P2")])
-        points = np.asarray(points, dtype=float)  # P1..P5 in order
-        order = [0, 4, 3, 2, 1]
-        return [f"P{i + 1}" for i in order], points[order]
+        cube = iso_cube_points(center, edge)
+        return list(cube.order), cube.positions_in_order()
 
     def fit_rigid_transform(self, source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
         from instrument.pose import fit_rigid_transform  # type: ignore[attr-defined]
@@ -184,24 +180,36 @@ class InstrumentScience:
     def iso_statistics(self, poses: np.ndarray, commanded: np.ndarray) -> dict[str, Any]:
         from instrument.iso9283 import pose_accuracy, pose_repeatability  # type: ignore[attr-defined]
 
-        out = {"n": int(len(poses))}
-        out.update({k.lower(): v for k, v in _plain(pose_repeatability(poses)).items()})
-        out.update({k.lower(): v for k, v in _plain(pose_accuracy(poses, commanded)).items()})
+        confidence = 0.95 if len(poses) >= 3 else None
+        out = {k.lower(): v for k, v in _plain(pose_repeatability(poses, confidence=confidence)).items()}
+        out.update({k.lower(): v for k, v in _plain(pose_accuracy(poses, commanded, confidence=confidence)).items()})
         return out
 
     # -- compensation
-    def fit_calibration(self, kind: str, data: dict[str, list[dict]]) -> CalibrationResult:
-        from instrument import compensation  # type: ignore[attr-defined]
+    def fit_calibration(self, kind: str, data: dict[str, list[dict]], provenance: dict) -> CalibrationResult:
+        """``instrument.compensation.calibrate`` over the default compensators (the held-out
+        winner per component), on the run's (measured, reference, group, point) rows."""
+        from instrument.compensation import CalibrationData, Provenance, calibrate, default_compensators
 
-        fit = getattr(compensation, "fit_calibration_record", None)
-        if fit is None:
-            raise NotImplementedError(
-                "instrument.compensation offers no fit_calibration_record(kind, data) yet; the lead wires it here"
-            )
-        record, curves, summary = fit(kind, data)
-        text = record.to_json()
-        return CalibrationResult(record_json=text, record_id=getattr(record, "record_id", None) or record_id_of(text),
-                                 curves=_plain(curves), summary=_plain(summary))
+        prepared = {
+            component: CalibrationData(component, np.array([r["measured"] for r in rows]),
+                                       np.array([r["reference"] for r in rows]),
+                                       np.array([r["group"] for r in rows]), np.array([r["point"] for r in rows]))
+            for component, rows in data.items()
+        }
+        record = calibrate(prepared, default_compensators(seed=0),
+                           Provenance(run_id=provenance["run_id"], references=tuple(provenance.get("references", ())),
+                                      date=provenance.get("date", "")))
+        curves = {}
+        for component, d in prepared.items():
+            corrected = np.array([record.correct(component, float(x))[0] for x in d.measured])
+            curves[component] = {"measured": d.measured.tolist(), "reference": d.reference.tolist(),
+                                 "error_before": (d.measured - d.reference).tolist(),
+                                 "error_after": (corrected - d.reference).tolist(), "group": d.group.tolist()}
+        summary = {"method": record.method,
+                   "evaluation": None if record.evaluation is None else _plain(record.evaluation.to_dict())}
+        return CalibrationResult(record_json=record.to_json(indent=1), record_id=record.content_id,
+                                 curves=curves, summary=summary)
 
     def load_compensator(self, path: str | Path) -> Compensator:
         from instrument.compensation import CalibrationRecord  # type: ignore[attr-defined]
@@ -213,8 +221,13 @@ class InstrumentScience:
 class _RecordCompensator:
     def __init__(self, record: Any, text: str) -> None:
         self.record = record
-        self.record_id = getattr(record, "record_id", None) or json.loads(text).get("record_id") or record_id_of(text)
+        self.record_id = getattr(record, "content_id", None) or record_id_of(text)
 
     def correct(self, pose: np.ndarray) -> tuple[np.ndarray, list[str]]:
-        values, flags = self.record.correct_pose(dict(zip(COMPONENTS, (float(v) for v in pose))))
-        return np.array([values[k] for k in COMPONENTS], dtype=float), list(flags)
+        import warnings
+
+        with warnings.catch_warnings():  # out-of-range corrections come back as flags
+            warnings.simplefilter("ignore")
+            values, flags = self.record.correct_pose(dict(zip(COMPONENTS, (float(v) for v in pose))))
+        out_of_range = [f"{k} outside the calibrated range" for k, flagged in dict(flags).items() if flagged]
+        return np.array([values[k] for k in COMPONENTS], dtype=float), out_of_range

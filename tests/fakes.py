@@ -29,7 +29,7 @@ from procedures._science import CalibrationResult, MeasurementFailed, PoseMeasur
 
 REFERENCE_TCP = [0.45, -0.10, 0.27, np.pi, 0.0, 0.0]
 TOOL_IN_OPR = [0.0, 0.0, 0.07, 0.0, 0.0, 0.0]
-COMPONENTS = ("x", "y", "z", "alpha", "theta", "gamma")
+COMPONENTS = ("x", "y", "z", "a", "b", "c")
 
 
 def station_dict(truth_log: str | None = None, **overrides) -> dict:
@@ -327,7 +327,7 @@ class FakeScience:
                 "ap_a": bary[3] - commanded[3], "ap_b": bary[4] - commanded[4], "ap_c": bary[5] - commanded[5],
                 "rp_l_ci": [float(l.mean() + 2.5 * l.std(ddof=1)), float(l.mean() + 3.6 * l.std(ddof=1))]}
 
-    def fit_calibration(self, kind, data):
+    def fit_calibration(self, kind, data, provenance):
         components, curves = {}, {}
         for name, entries in data.items():
             measured = np.array([e["measured"] for e in entries])
