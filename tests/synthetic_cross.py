@@ -148,12 +148,13 @@ def render_cross(
 
 
 def section_profiles(n, *, sigma=2.0, amplitude=200.0, background=10.0, noise=2.0, saturation=255,
-                     length=25, seed=0):
+                     length=25, seed=0, quantize=True):
     """Monte-Carlo cross-sections: ``n`` noisy integrated Gaussian profiles at random sub-pixel centres.
 
     Returns
     -------
-    profiles : (length, n) float array of grey levels (quantised and clipped like a sensor)
+    profiles : (length, n) float array of grey levels, clipped at ``saturation`` and (unless
+        ``quantize`` is False) rounded to integers like a sensor
     centers : (n,) true centres in pixel index units along the profile
     """
     rng = np.random.default_rng(seed)
@@ -161,7 +162,9 @@ def section_profiles(n, *, sigma=2.0, amplitude=200.0, background=10.0, noise=2.
     idx = np.arange(length)[:, None]
     clean = background + amplitude * gaussian_profile_pixels(idx - centers[None, :], sigma)
     noisy = clean + rng.normal(0.0, noise, size=clean.shape)
-    return np.clip(np.rint(noisy), 0, saturation), centers
+    if quantize:
+        noisy = np.rint(noisy)
+    return np.clip(noisy, 0, saturation), centers
 
 
 def cramer_rao(sigma, amplitude, noise):

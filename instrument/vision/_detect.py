@@ -6,7 +6,7 @@ factor), so the full-resolution image is read once by the averaging and never co
 1. background = median, noise = scaled MAD of the small image; no cross if nothing stands out;
 2. binarise at a set level above background (a fraction of the contrast, never below 6 noise σ),
    or Otsu's level on request;
-3. Hough transform (1° steps) of the binary image; the strongest near-horizontal and the strongest
+3. Hough transform (1° steps) of the binary image, itself reduced 2× more; the strongest near-horizontal and the strongest
    near-vertical line are the two stripes (split at 45°);
 4. each line is refined on the small image (intensity centroids per small column/row, bisquare fit,
    the crossing left out) to about a pixel of the full frame;
@@ -29,7 +29,9 @@ HOUGH_THETA = np.pi / 180.0
 MIN_CONTRAST_SIGMAS = 10.0  # the brightest structure must stand this many noise σ above background
 LEVEL_FRACTION = 0.15  # binarisation level as a fraction of the contrast (dim stripes down to ~1/5)
 MIN_STRIPE_PX = 40.0  # a stripe shorter than this (full-resolution px) is not looked for
-EXTRA_STRIPE_FRACTION = 0.3  # another line with this share of the weaker stripe's votes = 2nd cross
+EXTRA_STRIPE_FRACTION = 0.3
+HOUGH_MIN_SIDE = 96  # Hough on a 2× further reduced copy only if that keeps ≥ this many px a side
+REFINE_MIN_RADIUS = 5  # small-image px searched either side of the Hough line  # another line with this share of the weaker stripe's votes = 2nd cross
 
 
 @dataclass(frozen=True)
@@ -117,6 +119,13 @@ def _to_full(line, factor):
     )
 
 
+def _to_coarse(line, factor):
+    """Inverse of :func:`_to_full`."""
+    shift = (factor - 1) / 2.0
+    slope = line.slope
+    return CoarseLine(line.vertical, (line.intercept - shift + slope * shift) / factor, slope, line.votes)
+
+
 def _refine(small, line, other, level, background, radius):
     """Intensity centroids across ``line`` in each small column/row, then a bisquare line fit."""
     data = small.T if line.vertical else small  # work as if horizontal: sections are columns
@@ -185,13 +194,23 @@ def find_stripes(img, saturation, threshold=None) -> Detection:
         level = _otsu_level(small, saturation)
     else:
         level = float(threshold)
-    binary = (small > level).astype(np.uint8)
-    min_votes = max(8, int(MIN_STRIPE_PX / factor))
+
+    # the Hough transform runs on a further 2× reduced copy (its cost grows with the pixel count);
+    # the refinement then works on ``small`` again
+    hough_scale = 2 if min(small.shape) >= 2 * HOUGH_MIN_SIDE else 1
+    coarse = downsample(small, hough_scale) if hough_scale > 1 else small
+    if threshold is None:
+        coarse_contrast = float(coarse.max()) - background
+        coarse_level = background + max(LEVEL_FRACTION * coarse_contrast, 6.0 * small_noise / hough_scale)
+    else:
+        coarse_level = level
+    binary = (coarse > coarse_level).astype(np.uint8)
+    min_votes = max(8, int(MIN_STRIPE_PX / (factor * hough_scale)))
     lines = _hough(binary, min_votes)
     horizontal, vertical = _classify(lines)
     if len(horizontal) == 0 and len(vertical) == 0:
         raise CrossNotFound(
-            f"no cross in the image: bright pixels above level {level:.1f} form no stripe "
+            f"no cross in the image: bright pixels above level {coarse_level:.1f} form no stripe "
             f"(at least {MIN_STRIPE_PX:.0f} px long)"
         )
     if len(horizontal) == 0 or len(vertical) == 0:
@@ -200,21 +219,22 @@ def find_stripes(img, saturation, threshold=None) -> Detection:
         raise CrossNotFound(
             f"only one stripe found ({found}); no {missing} stripe of at least {MIN_STRIPE_PX:.0f} px"
         )
-    h = _small_line(*horizontal[0], vertical=False)
-    v = _small_line(*vertical[0], vertical=True)
-    radius = int(np.ceil(16.0 / factor)) + 1
+    h = _to_full(_small_line(*horizontal[0], vertical=False), hough_scale)
+    v = _to_full(_small_line(*vertical[0], vertical=True), hough_scale)
+    radius = max(REFINE_MIN_RADIUS, int(np.ceil(16.0 / factor)) + 1)
     h, v = _refine(small, h, v, level, background, radius), _refine(small, v, h, level, background, radius)
 
     # anything long and straight that the two stripes do not explain → more than one cross
     rest = binary.copy()
-    _erase(rest, h, radius)
-    _erase(rest, v, radius)
+    erase = int(np.ceil(radius / hough_scale)) + 1
+    _erase(rest, _to_coarse(h, hough_scale), erase)
+    _erase(rest, _to_coarse(v, hough_scale), erase)
     if cv2.countNonZero(rest) >= min_votes:
         extra = _hough(rest, max(min_votes, EXTRA_STRIPE_FRACTION * min(h.votes, v.votes)))
         if len(extra):
             rho, theta, votes = extra[0]
             is_vertical = not (np.pi / 4 <= theta < 3 * np.pi / 4)
-            stray = _to_full(_small_line(rho, theta, votes, is_vertical), factor)
+            stray = _to_full(_small_line(rho, theta, votes, is_vertical), factor * hough_scale)
             raise CrossNotFound(
                 f"more than one cross in the image: besides the cross's two stripes there is "
                 f"another {stray.describe()}"

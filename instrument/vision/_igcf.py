@@ -81,12 +81,13 @@ def igcf_centers(
         Background level subtracted before the logarithm; a scalar or one value per section.
     saturation : float or None
         Sensor saturation level; None disables the saturation rule.
-    half_window : int or None
-        h of the 2h+1-pixel fit window; None chooses it from the median width at half maximum of
-        the unsaturated sections (:func:`half_window_for_width`).
+    half_window : int, array_like of int, or None
+        h of the 2h+1-pixel fit window (one value, or one per section); None chooses it from the
+        median width at half maximum of the unsaturated sections (:func:`stripe_fwhm`,
+        :func:`half_window_for_width`).
     valid : array_like of bool or None
         Same shape as ``profiles``; False marks pixels that do not exist (outside the image).
-    min_amplitude : float
+    min_amplitude : float or array_like
         Sections whose peak above background is below this are rejected.
 
     Returns
@@ -151,28 +152,39 @@ def igcf_band(band, valid, background, saturation, half_window, min_amplitude):
         n_dropped = np.zeros(n, dtype=np.intp)
 
     if half_window is None:
-        half_window = half_window_for_width(_median_fwhm(band, bg, amplitude, contained & ~plateau))
+        half_window = half_window_for_width(
+            _median_fwhm(band, bg, amplitude, np.flatnonzero(contained & ~plateau)[::8])
+        )
     # widen the window over a removed plateau so both flanks keep h pixels
-    h_sec = half_window + (n_dropped + 1) // 2
-    h_max = int(min(h_sec.max(initial=half_window), (length - 1) // 2))
+    h_sec = np.asarray(half_window, dtype=np.intp) + (n_dropped + 1) // 2
+    h_max = int(min(h_sec.max(initial=MIN_HALF_WINDOW), (length - 1) // 2))
     h_sec = np.minimum(h_sec, h_max)
 
     t = np.arange(-h_max, h_max + 1)
     rows = coarse[None, :] + t[:, None]
-    inside = (rows >= 0) & (rows < length)
-    flat_index = np.clip(rows, 0, length - 1) * n + cols[None, :]
-    values = band.ravel().take(flat_index).astype(float)
-    use = inside & (np.abs(t)[:, None] <= h_sec[None, :])
+    use = None  # window pixels that enter the fit; None = all so far (skips mask work)
+    if coarse.min() - h_max < 0 or coarse.max() + h_max >= length:
+        use = (rows >= 0) & (rows < length)
+        rows = np.clip(rows, 0, length - 1)
+    flat_index = rows * n + cols[None, :]
+    values = band.ravel().take(flat_index)
+    masks = []
+    if h_sec.min() < h_max:
+        masks.append(np.abs(t)[:, None] <= h_sec[None, :])
     if valid is not None:
-        use &= valid.ravel().take(flat_index)
-    if saturation is not None:
-        use &= ~((values >= saturation) & plateau[None, :])
+        masks.append(valid.ravel().take(flat_index))
+    if plateau.any():
+        masks.append(~((values >= saturation) & plateau[None, :]))
+    for mask in masks:
+        use = mask if use is None else use & mask
     # normalised to the section's amplitude: the I² weights and logs stay O(1) for any bit depth
-    scale = np.where(amplitude > 0, amplitude, 1.0)
-    level = (values - bg[None, :]) / scale[None, :]
-    use &= level > 0
-    weight = np.where(use, level * level, 0.0)
-    log_level = np.log(np.where(use, level, 1.0))
+    inv_scale = 1.0 / np.where(amplitude > 0, amplitude, 1.0)
+    level = (values - bg[None, :]) * inv_scale[None, :]
+    positive = level > 0
+    use = positive if use is None else use & positive
+    level[~use] = 0.0
+    weight = level * level
+    log_level = np.log(level, out=np.zeros_like(level), where=use)
 
     tf = t.astype(float)
     powers = np.stack([np.ones_like(tf), tf, tf**2, tf**3, tf**4])  # (5, K)
@@ -187,16 +199,32 @@ def igcf_band(band, valid, background, saturation, half_window, min_amplitude):
         offset = -det1 / (2.0 * det2)
     ok = contained & (use.sum(axis=0) >= 3) & (det > 0) & (a2 < 0)
     ok &= np.abs(offset) <= h_sec + 0.5
-    ok &= amplitude >= max(min_amplitude, np.finfo(float).tiny)
+    ok &= amplitude >= np.maximum(min_amplitude, np.finfo(float).tiny)
     center = np.where(ok, coarse + offset, np.nan)
     return SectionCentres(center, ok, plateau & ok, amplitude, last - first + 1)
 
 
-def _median_fwhm(band, bg, amplitude, usable, stride=8):
-    """Median count of pixels at or above half maximum, over every ``stride``-th usable section."""
-    pick = np.flatnonzero(usable)[::stride]
+def _median_fwhm(band, bg, amplitude, pick):
+    """Median count of pixels at or above half maximum over the sections ``pick``."""
     if len(pick) == 0:
         return FWHM_PER_SIGMA * 2.0  # nothing to measure: assume σ = 2 px
     sub = band[:, pick]
     counts = (sub >= (bg[pick] + 0.5 * amplitude[pick])[None, :]).sum(axis=0)
+    return float(np.median(counts))
+
+
+def stripe_fwhm(band, background, saturation=None, stride=8):
+    """Width at half maximum of a stripe, px along the profiles: the median over every
+    ``stride``-th section of a band laid out (profile length L, sections N), saturated sections
+    left out. Cheap: a coarse figure to size the fit windows.
+    """
+    sub = band[:, ::stride]
+    bg = np.broadcast_to(np.asarray(background, dtype=float), (band.shape[1],))[::stride]
+    peak = sub.max(axis=0).astype(float)
+    usable = peak > bg
+    if saturation is not None:
+        usable &= peak < saturation
+    if not usable.any():
+        return FWHM_PER_SIGMA * 2.0  # nothing to measure: assume σ = 2 px
+    counts = (sub[:, usable] >= (0.5 * (bg + peak))[usable][None, :]).sum(axis=0)
     return float(np.median(counts))

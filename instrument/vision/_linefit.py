@@ -63,8 +63,8 @@ def _weighted_line(u, v, w):
 def fit_line_bisquare(points, *, independent=0, tuning=BISQUARE_TUNING, tol=1e-7, max_iter=50):
     """Fit a straight line to 2-D points by iteratively reweighted least squares (Tukey's biweight).
 
-    Starts from ordinary least squares, then repeats: residual scale s = MAD/0.6745 (MAD of the
-    residuals about their median), weights w = (1 − (r / (tuning·s))²)² for |r| < tuning·s and 0
+    Starts from ordinary least squares, then repeats: residual scale s = MAD/0.6745 (median absolute
+    residual from the current line, so at least half the points keep a weight), weights w = (1 − (r / (tuning·s))²)² for |r| < tuning·s and 0
     beyond, weighted least squares — until the coefficient change is below ``tol`` relative to the
     coefficients (the slope measured as its effect over the half-range of the points).
 
@@ -108,7 +108,7 @@ def fit_line_bisquare(points, *, independent=0, tuning=BISQUARE_TUNING, tol=1e-7
     iterations, converged = 0, False
     for iterations in range(1, max_iter + 1):
         r = v - (a + b * u)
-        mad = _median(np.abs(r - _median(r)))
+        mad = _median(np.abs(r))  # about the fit, as robustfit: ≥ half the points keep weight
         scale = max(mad / MAD_TO_SIGMA, 1e-12 * (1.0 + np.abs(v).max()))
         z = r / (tuning * scale)
         weights = np.where(np.abs(z) < 1.0, (1.0 - z * z) ** 2, 0.0)

@@ -13,7 +13,7 @@ from typing import NamedTuple
 import numpy as np
 
 from instrument.vision._detect import CoarseLine, find_stripes
-from instrument.vision._igcf import igcf_band
+from instrument.vision._igcf import SectionCentres, half_window_for_width, igcf_band, stripe_fwhm
 from instrument.vision._linefit import LineFit, fit_line_bisquare
 from instrument.vision._types import CrossMeasurement, CrossNotFound, StripeLine
 
@@ -22,6 +22,20 @@ MIN_SECTIONS = 30  # fewer usable cross-sections than this: the stripe is too sh
 MIN_AMPLITUDE_SIGMAS = 6.0  # sections whose peak is weaker than this many noise σ are left out
 DEFAULT_SATURATION = {np.dtype(np.uint8): 255, np.dtype(np.uint16): 65535}
 MIN_SIDE = 16
+
+
+class _Band(NamedTuple):
+    """Full-resolution pixels following one stripe: ``values[k, i]`` is pixel ``base[i] + k``
+    across the stripe in section ``along[i]`` (a column of a horizontal stripe, a row of a
+    vertical one)."""
+
+    values: np.ndarray  # (2·BAND_HALF_WIDTH+1, N) image dtype
+    valid: np.ndarray | None  # same shape, or None when every pixel lies in the frame
+    along: np.ndarray  # (N,) section index
+    base: np.ndarray  # (N,) first pixel of the band across the stripe
+    background: float
+    noise: float
+    vertical: bool
 
 
 class _StripeFit(NamedTuple):
@@ -51,8 +65,12 @@ def _check_image(img, saturation):
     return float(saturation)
 
 
-def _fine_stripe(flat, shape, line: CoarseLine, other: CoarseLine, saturation, half_window, fallback_bg, min_sections):
-    """IGCF on the band around ``line`` and a bisquare line fit of the centres."""
+def _kind(vertical):
+    return "near-vertical" if vertical else "near-horizontal"
+
+
+def _extract_band(flat, shape, line: CoarseLine, other: CoarseLine, fallback_bg, min_sections) -> _Band:
+    """One gather of the band around ``line``, the crossing zone left out."""
     rows, cols = shape
     n_sections, across_len = (rows, cols) if line.vertical else (cols, rows)
     s = np.arange(n_sections)
@@ -63,11 +81,10 @@ def _fine_stripe(flat, shape, line: CoarseLine, other: CoarseLine, saturation, h
     keep = np.abs(s - other_at) > reach
     keep &= (position > -BAND_HALF_WIDTH) & (position < across_len - 1 + BAND_HALF_WIDTH)
     s, position = s[keep], position[keep]
-    kind = "near-vertical" if line.vertical else "near-horizontal"
     if len(s) < min_sections:
         raise CrossNotFound(
-            f"{kind} stripe too short to fit: {len(s)} cross-sections outside the crossing zone "
-            f"(need ≥ {min_sections})"
+            f"{_kind(line.vertical)} stripe too short to fit: {len(s)} cross-sections outside the "
+            f"crossing zone (need ≥ {min_sections})"
         )
     base = np.rint(position).astype(np.intp) - BAND_HALF_WIDTH
     across = base[None, :] + np.arange(2 * BAND_HALF_WIDTH + 1)[:, None]
@@ -77,31 +94,56 @@ def _fine_stripe(flat, shape, line: CoarseLine, other: CoarseLine, saturation, h
         valid = (across >= 0) & (across < across_len)
         across = np.clip(across, 0, across_len - 1)
     index = s[None, :] * cols + across if line.vertical else across * cols + s[None, :]
-    band = flat.take(index)
-
+    values = flat.take(index)
     # background and noise from the band's outer edges (the stripe is far from them)
     edges = np.r_[0:2, -2:0]
-    edge_values = band[edges].ravel() if valid is None else band[edges][valid[edges]]
+    edge_values = values[edges].ravel() if valid is None else values[edges][valid[edges]]
     if edge_values.size >= 16:
-        background = float(edge_values.mean())
-        noise = max(float(edge_values.std()), 0.5)
+        background, noise = float(edge_values.mean()), max(float(edge_values.std()), 0.5)
     else:  # band cut off by the frame on both sides: use the frame's figures
         background, noise = fallback_bg, 0.5
-    result = igcf_band(
-        band, valid, background, saturation, half_window, min_amplitude=MIN_AMPLITUDE_SIGMAS * noise
-    )
-    ok = result.valid
+    return _Band(values, valid, s, base, background, noise, line.vertical)
+
+
+def _fit_stripe(band: _Band, centres: SectionCentres, min_sections) -> _StripeFit:
+    """Bisquare line through the IGCF centres of one stripe."""
+    ok = centres.valid
     n_ok = int(ok.sum())
     if n_ok < min_sections:
         raise CrossNotFound(
-            f"{kind} stripe too short to fit: {n_ok} usable cross-sections (need ≥ {min_sections})"
+            f"{_kind(band.vertical)} stripe too short to fit: {n_ok} usable cross-sections "
+            f"(need ≥ {min_sections})"
         )
-    centre = base[ok] + result.center[ok]
-    along = s[ok].astype(float)
-    points = np.column_stack([centre, along] if line.vertical else [along, centre])
-    fit = fit_line_bisquare(points, independent=1 if line.vertical else 0)
-    peak = float(result.peak[ok].max() + background)
-    return _StripeFit(fit, points, int(result.saturated.sum()), peak)
+    centre = band.base[ok] + centres.center[ok]
+    along = band.along[ok].astype(float)
+    points = np.column_stack([centre, along] if band.vertical else [along, centre])
+    fit = fit_line_bisquare(points, independent=1 if band.vertical else 0)
+    peak = float(centres.peak[ok].max() + band.background)
+    return _StripeFit(fit, points, int(centres.saturated.sum()), peak)
+
+
+def _section_centres(bands, saturation, half_window) -> list[SectionCentres]:
+    """IGCF of every section of both bands in one vectorised call (halves the per-call overhead)."""
+    sizes = [b.values.shape[1] for b in bands]
+    per_section = lambda f: np.concatenate([np.full(n, f(b)) for b, n in zip(bands, sizes)])  # noqa: E731
+    if half_window is None:  # each stripe's window from its own width
+        half_window = per_section(lambda b: half_window_for_width(stripe_fwhm(b.values, b.background, saturation)))
+    values = np.concatenate([b.values for b in bands], axis=1)
+    valid = None
+    if any(b.valid is not None for b in bands):
+        valid = np.concatenate(
+            [np.ones(b.values.shape, bool) if b.valid is None else b.valid for b in bands], axis=1
+        )
+    result = igcf_band(
+        values,
+        valid,
+        per_section(lambda b: b.background),
+        saturation,
+        half_window,
+        per_section(lambda b: MIN_AMPLITUDE_SIGMAS * b.noise),
+    )
+    split = np.cumsum(sizes)[:-1]
+    return [SectionCentres(*parts) for parts in zip(*(np.split(field, split) for field in result))]
 
 
 def _stripe_line(fit: _StripeFit, vertical: bool) -> StripeLine:
@@ -152,10 +194,14 @@ def locate_cross(img, saturation=None, *, threshold=None, half_window=None, min_
     saturation = _check_image(img, saturation)
     detection = find_stripes(img, saturation, threshold)
     flat = np.ascontiguousarray(img).ravel()
-    h_fit = _fine_stripe(flat, img.shape, detection.horizontal, detection.vertical, saturation,
-                         half_window, detection.background, min_sections)
-    v_fit = _fine_stripe(flat, img.shape, detection.vertical, detection.horizontal, saturation,
-                         half_window, detection.background, min_sections)
+    bands = [
+        _extract_band(flat, img.shape, detection.horizontal, detection.vertical, detection.background, min_sections),
+        _extract_band(flat, img.shape, detection.vertical, detection.horizontal, detection.background, min_sections),
+    ]
+    h_fit, v_fit = (
+        _fit_stripe(band, centres, min_sections)
+        for band, centres in zip(bands, _section_centres(bands, saturation, half_window))
+    )
     a_h, b_h = h_fit.line.intercept, h_fit.line.slope  # y = a_h + b_h·x
     a_v, b_v = v_fit.line.intercept, v_fit.line.slope  # x = a_v + b_v·y
     x = (a_v + b_v * a_h) / (1.0 - b_v * b_h)
