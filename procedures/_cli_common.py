@@ -122,8 +122,18 @@ def station_for(station: str | None, runs_dir: Path, seed: int) -> Iterator[str 
 
     directory = Path(runs_dir) / "sim" / time.strftime("%Y%m%d-%H%M%S")
     directory.mkdir(parents=True, exist_ok=True)
-    with SimCell(seed=seed, directory=directory) as cell:
+    from procedures._errors import RunError
+
+    cell = SimCell(seed=seed, directory=directory)
+    try:
+        cell.start()
+    except Exception as exc:  # the twins' own message, without their traceback
+        cell.stop()
+        raise RunError(f"the simulated cell did not start: {str(exc).strip().splitlines()[-1]}") from None
+    try:
         yield str(cell.station_path)
+    finally:
+        cell.stop()
 
 
 def drive(engine, args) -> int:
