@@ -20,6 +20,7 @@ How it keeps every promise of the interface
 
 from __future__ import annotations
 
+import ctypes
 import queue
 import socket
 import struct
@@ -37,6 +38,13 @@ RTDE_PORT, DASHBOARD_PORT, SCRIPT_PORT = 30004, 29999, 30003
 SAFETY_PROTECTIVE_BIT, SAFETY_EMERGENCY_BIT = 1 << 2, 1 << 7
 RUNTIME_PLAYING = 2
 POSITION_TOLERANCE, ORIENTATION_TOLERANCE = 1e-4, 1e-3  # m, rad: "reached the target" for a blocking move
+
+
+# Clients whose connection broke: ur_rtde 1.6.5's control client then loops in its own reconnect
+# (its receive thread never resets ``should_reconnect`` and restarts itself), and ``disconnect()`` on
+# it can crash the process. They are parked here, never destroyed; their thread gives up by itself
+# once the controller refuses connections.
+_ABANDONED_CLIENTS: list = []
 
 
 class _Worker:
@@ -195,6 +203,12 @@ class URRobot:
     def _drop_clients(self) -> None:
         control, receive = self._control, self._receive
         self._control = self._receive = None
+        if self._broken and control is not None:
+            _ABANDONED_CLIENTS.append(control)  # see _ABANDONED_CLIENTS
+            # One extra reference that is never released: not even interpreter shutdown may run its
+            # destructor (which calls disconnect() and can abort the process).
+            ctypes.pythonapi.Py_IncRef(ctypes.py_object(control))
+            control = None
         for client in (control, receive):
             if client is not None:
                 try:
@@ -373,6 +387,11 @@ class URRobot:
             if dp <= POSITION_TOLERANCE and dr <= ORIENTATION_TOLERANCE:
                 return
             if time.monotonic() > deadline:
+                error = self._safety_error(operation)
+                if error is not None:
+                    raise error
+                if self._receive.getRuntimeState() != RUNTIME_PLAYING:
+                    raise ProgramStopped(self.name, operation, "the control script stopped during the move")
                 raise MoveFailed(self.name, operation,
                                  f"stopped {dp * 1e3:.3f} mm / {np.degrees(dr):.4f}° away from the target")
             time.sleep(0.002)

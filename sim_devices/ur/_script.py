@@ -201,7 +201,7 @@ class ControlScript:
             raise
         except RuntimeError as exc:  # e.g. motion refused in a safety stop
             c.log(f"command {cmd} failed: {exc}")
-        if cmd not in REALTIME_COMMANDS:
+        if cmd not in REALTIME_COMMANDS and self.alive:  # a killed program writes nothing more
             self._signal_done()
         return True
 
@@ -247,7 +247,7 @@ class ControlScript:
 
                 def finished(motion, script=self):
                     with script.c.lock:
-                        if script._async_motion is motion:
+                        if script.alive and script._async_motion is motion:
                             script._async_motion = None
                             script._write_async_progress(-1)
 
@@ -268,7 +268,8 @@ class ControlScript:
                 self._write_async_progress(0)
 
                 def finished(_motion, script=self):
-                    script._write_async_progress(-1)
+                    if script.alive:
+                        script._write_async_progress(-1)
 
                 c.stop_motion(deceleration, finished)
         else:
