@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import socket
 import tempfile
+import time
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -46,6 +47,12 @@ def free_loopback_host(first: int = 2, last: int = 254, exclude: tuple[str, ...]
             for s in sockets:
                 s.close()
     raise RuntimeError("no loopback address with the UR ports free in 127.0.0.2-254")
+
+
+def _scaled_clock(scale: float):
+    """A monotonic clock that runs ``scale`` times faster than wall time."""
+    origin = time.monotonic()
+    return lambda: origin + (time.monotonic() - origin) * scale
 
 
 class CellHost:
@@ -92,10 +99,10 @@ class CellHost:
             self.bench = OpticalBench(world, self.config.get("optics"))
             self._add("cameras", CameraFileTwin(world, self.bench, self.directory / "frames"))
             host = self.robot_host or free_loopback_host()
-            self._add("robot", URControllerTwin(world, host, {"time_scale": self.time_scale,
+            self._add("robot", URControllerTwin(world, host, {"time_scale": self.time_scale, "seed": self.seed,
                                                              **dict(self.config.get("robot") or {})}))
-            self._add("rotary_table", RotaryTableTwin(world, {"time_scale": self.time_scale,
-                                                              **dict(self.config.get("rotary_table") or {})}))
+            self._add("rotary_table", RotaryTableTwin(world, self.config.get("rotary_table"),
+                                                      clock=_scaled_clock(self.time_scale)))
             self._add("interferometer", InterferometerTwin(world, self.config.get("interferometer")))
             self._control = ControlServer(self.control)
             control_host, control_port = self._control.start()
@@ -170,8 +177,8 @@ class CellHost:
                     axis: {"adapter": "pylon", "serial": serial, "emulator_image": str(frames_dir / f"{axis}.bmp")}
                     for axis, serial in zip("xyz", ("0815-0000", "0815-0001", "0815-0002"))
                 },
-                "rotary_table": {"adapter": "modbus_tcp", "host": table["modbus_tcp"]["host"],
-                                 "port": table["modbus_tcp"]["port"], "unit": table["modbus_tcp"].get("unit", 1)},
+                "rotary_table": {"adapter": "modbus_tcp", "host": "127.0.0.1", "port": table["modbus_tcp_port"],
+                                 "unit": int((self.config.get("rotary_table") or {}).get("unit", 1))},
                 "interferometer": {"adapter": "socketcand", "host": ifm["socketcand"]["host"],
                                    "port": ifm["socketcand"]["port"],
                                    "channel": ifm["socketcand"].get("channel", "can0")},
