@@ -39,6 +39,13 @@ class InconsistentCrossesError(PoseError):
         self.residual_rms = residual_rms
         self.threshold = threshold
 
+    def __reduce__(self):  # keep the keyword-only figures when pickled (e.g. across processes)
+        return (_rebuild_inconsistent, (str(self), self.residual_rms, self.threshold))
+
+
+def _rebuild_inconsistent(message: str, residual_rms: float, threshold: float) -> "InconsistentCrossesError":
+    return InconsistentCrossesError(message, residual_rms=residual_rms, threshold=threshold)
+
 
 class RigidFitError(PoseError):
     """Point sets unusable for a rigid fit: too few, mismatched, non-finite, collinear."""
