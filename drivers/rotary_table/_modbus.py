@@ -119,7 +119,11 @@ class ModbusTable:
             client.close()
             raise DeviceConnectionError(self.name, f"connect ({self.endpoint})", "the drive cannot be reached")
         self._client = client
-        self._read(self.map.status, 1)  # proves the drive answers with this unit id
+        try:
+            self._read(self.map.status, 1)  # proves the drive answers with this unit id and map
+        except DeviceError:
+            self.close()
+            raise
 
     def close(self) -> None:
         if self._client is not None:

@@ -9,7 +9,7 @@ Supported: ``*IDN?``, ``CSV?`` (``2.0``), ``ERR?``, ``SAI?``, ``HLP?``, ``MOV``,
 ``SVO?``, ``TMN?``, ``TMX?``, and the single-byte queries ``#5`` (moving), ``#7`` (ready), ``#24`` (stop).
 
 An armed ``exception`` fault (param ``code``, default 1) makes the next line fail with that error
-code: a set command is not executed, a query gets no answer.
+code: a set command is not executed, a query gets no answer (``ERR?`` itself is never hit).
 """
 
 from __future__ import annotations
@@ -74,8 +74,8 @@ class GcsController:
             line = line.strip()
             if not line:
                 return b""
-            fault = self.faults.take(FaultKind.EXCEPTION)
-            if fault is not None:
+            fault = None if line.upper() == "ERR?" else self.faults.take(FaultKind.EXCEPTION)
+            if fault is not None:  # ERR? is how the error is read, so it never fails itself
                 self.error = int(fault.params.get("code", 1))
                 return b""
             try:
@@ -228,7 +228,8 @@ class GcsController:
         return []
 
     def _cmd_SVO_Q(self, args: list[str]) -> list[str]:
-        return [f"{axis}={int(self.physics.status()['enabled'])}" for axis in self._axes(args)]
+        status = self.physics.status()  # a motion error switches the servo off (PI behaviour)
+        return [f"{axis}={int(status['enabled'] and not status['alarms'])}" for axis in self._axes(args)]
 
     def _cmd_TMN_Q(self, args: list[str]) -> list[str]:
         return [f"{axis}={-TRAVEL_DEG:.9f}" for axis in self._axes(args)]

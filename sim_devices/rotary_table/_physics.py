@@ -12,7 +12,7 @@ Angles
 
 The servo closes its loop on the reading: it plans the motor motion so that the noise-free reading
 lands on the commanded count, so *commanded ≈ reported ≠ true*, and ``|reported − true|`` stays
-below ``TableConfig.reported_error_bound()`` (periodic error + half backlash + quantisation + 3σ).
+below ``TableConfig.reported_error_bound()`` once homed (periodic error, backlash, quantisation, 3σ).
 """
 
 from __future__ import annotations
@@ -41,9 +41,9 @@ class TableConfig:
     peak_torque: float = 0.1  # N·m  →  acceleration 2 rad/s²
     counts_per_rev: int = 16_777_216  # encoder resolution, 2**24 (0.077″)
     periodic_error: float = 0.30 * ARCSEC  # amplitude of the once-per-rev encoder error
-    periodic_phase: float | None = None  # rad; None: drawn from the seed
-    backlash: float = 0.15 * ARCSEC
-    noise_std: float = 0.02 * ARCSEC  # reading noise, clipped at 3σ
+    periodic_phase: float = 0.0  # rad, phase of that error at the reference mark (0: it vanishes there)
+    backlash: float = 0.10 * ARCSEC
+    noise_std: float = 0.01 * ARCSEC  # reading noise, clipped at 3σ
     settle_time: float = 0.02  # s after the profile ends until "in position"
     home_speed: float = 0.25  # rad/s
     home_overshoot: float = math.radians(0.5)  # homing approaches the mark from below
@@ -55,9 +55,14 @@ class TableConfig:
         return self.peak_torque / self.inertia
 
     def reported_error_bound(self) -> float:
-        """Largest ``|reported − true|`` the model can produce (rad)."""
+        """Largest ``|reported − true|`` the model can produce once homed (rad).
+
+        The counter is zeroed at the reference mark approached from below, so the periodic error is
+        counted from its value at the mark, and an approach from above adds the whole backlash.
+        """
         quantum = 2.0 * math.pi / self.counts_per_rev
-        return self.periodic_error + self.backlash / 2.0 + quantum / 2.0 + 3.0 * self.noise_std
+        periodic = self.periodic_error * (1.0 + abs(math.sin(self.periodic_phase)))
+        return periodic + self.backlash + quantum / 2.0 + 3.0 * self.noise_std
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any] | "TableConfig" | None) -> "TableConfig":
@@ -134,8 +139,8 @@ class TablePhysics:
         self._lock = threading.RLock()
         seed_seq = np.random.SeedSequence([self.config.seed, 0x7AB1E])
         self._rng = np.random.default_rng(seed_seq)
-        self._phase = (self.config.periodic_phase if self.config.periodic_phase is not None
-                       else float(self._rng.uniform(0.0, 2.0 * math.pi)))
+        self._mark = self.config.backlash / 2.0  # motor angle of the reference mark (true 0, approached from below)
+        self._phase = self.config.periodic_phase
         self._direction = 1.0
         self._motor0 = initial_angle + self._direction * self.config.backlash / 2.0
         self._segments: list[_Segment] = []
@@ -153,7 +158,7 @@ class TablePhysics:
 
     # ----------------------------------------------------------------------------- model
     def _periodic(self, motor: float) -> float:
-        return self.config.periodic_error * math.sin(motor + self._phase)
+        return self.config.periodic_error * math.sin(motor - self._mark + self._phase)
 
     @property
     def quantum(self) -> float:
@@ -244,7 +249,7 @@ class TablePhysics:
             t = self.clock()
             self._finish_if_done(t)
             self._check_can_move(False)
-            mark = self.config.backlash / 2.0  # motor angle at which true = 0 when moving positive
+            mark = self._mark
             motor, _ = self._motor_at(t)
             via = mark - self.config.home_overshoot if motor >= mark - self.config.home_overshoot / 2 else None
             self._homing = True

@@ -1,0 +1,245 @@
+"""Each rotary-table adapter against its twin over the real client library, with every fault."""
+
+import logging
+import math
+import os
+import threading
+import time
+
+import pytest
+
+from drivers._errors import DeviceConnectionError, DeviceTimeout, MotionRefused, ProtocolError
+from drivers.rotary_table import RotaryTable, TableFault, create
+from sim_devices import World
+from sim_devices.rotary_table import ARCSEC, RotaryTableTwin
+
+TIMEOUT = 0.2
+RETRIES = 2
+FAST_TABLE = {"max_speed": 3.0, "peak_torque": 1.0, "home_speed": 3.0, "seed": 5}
+TRANSPORTS = ["modbus_tcp", "modbus_rtu", "gcs"]
+
+
+@pytest.fixture(scope="module")
+def cell():
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)  # the faults make it complain loudly
+    world = World()
+    world.mount_on_table("z")
+    twin = RotaryTableTwin(world, {"table": FAST_TABLE})
+    endpoints = twin.start()
+    yield world, twin, endpoints
+    twin.stop()
+
+
+def _config(transport, endpoints):
+    if transport == "modbus_tcp":
+        return {"adapter": "modbus_tcp", "host": "127.0.0.1", "port": endpoints["modbus_tcp_port"], "unit": 1}
+    if transport == "modbus_rtu":
+        return {"adapter": "modbus_rtu", "port": endpoints["modbus_rtu_port"], "baudrate": 115200}
+    return {"adapter": "gcs_serial", "port": endpoints["gcs_port"], "axis": "1"}
+
+
+@pytest.fixture(scope="module", params=TRANSPORTS)
+def connected(request, cell):
+    world, twin, endpoints = cell
+    transport = request.param
+    table = create({**_config(transport, endpoints), "timeout": TIMEOUT, "retries": RETRIES}, name="table")
+    table.connect()
+    twin.physics.alarm_reset()
+    table.home(timeout=10)
+    yield world, twin, table, transport
+    table.close()
+
+
+@pytest.fixture
+def rig(connected):
+    world, twin, table, transport = connected
+    yield connected
+    if twin.faults(transport).fired():
+        time.sleep(2 * TIMEOUT)  # let a late answer of a fault drain before the next test
+    twin.faults(transport).clear()
+    twin.faults(transport)._fired.clear()
+    twin.physics.alarm_reset()
+
+
+def _bound(twin):
+    return twin.table_config.reported_error_bound()
+
+
+def test_moves_agree_with_the_worlds_truth(rig):
+    world, twin, table, _ = rig
+    assert isinstance(table, RotaryTable)
+    for target in (0.5, -0.25, 0.25):
+        table.move_absolute(target, speed=2.0)
+        reported = table.wait_in_position(timeout=10)
+        assert world.state().settled
+        assert abs(reported - world.table_angle()) <= _bound(twin)
+        assert abs(reported - target) <= 2 * 2 * math.pi / twin.table_config.counts_per_rev + 3 * twin.table_config.noise_std
+    table.move_relative(0.25)
+    reported = table.wait_in_position(timeout=10)
+    assert abs(reported - 0.5) <= _bound(twin)
+    assert abs(world.table_angle() - 0.5) <= _bound(twin)
+    state = table.state()
+    assert state.in_position and state.homed and not state.moving and state.fault is None
+
+
+def test_stop_and_alarm(rig):
+    world, twin, table, _ = rig
+    table.move_absolute(3.0, speed=1.0)
+    time.sleep(0.2)
+    assert table.state().moving
+    table.stop()
+    rest = table.wait_in_position(timeout=10)
+    assert 0.0 < rest < 3.0
+    assert abs(rest - world.table_angle()) <= _bound(twin)
+    twin.control("alarm", name="following_error")
+    with pytest.raises(TableFault) as raised:
+        table.move_absolute(1.0)
+        table.wait_in_position(timeout=5)
+    assert "following error" in str(raised.value) or "1024" in str(raised.value)
+    assert table.state().fault is not None
+    table.reset_alarm()
+    table.move_absolute(0.25)
+    assert abs(table.wait_in_position(timeout=10) - world.table_angle()) <= _bound(twin)
+
+
+def test_bad_input_is_refused_before_sending(rig):
+    _, _, table, _ = rig
+    with pytest.raises(MotionRefused):
+        table.move_absolute(float("nan"))
+    with pytest.raises(MotionRefused):
+        table.move_absolute(0.1, speed=-1.0)
+
+
+TRANSPORT_FAULTS = [
+    ("drop_reply", {}),
+    ("delay", {"seconds": 1.5 * TIMEOUT}),  # late: after the driver gave up, before it retries
+    ("garbage", {}),
+    ("garbage", {"mode": "replace"}),
+    ("truncate", {}),
+    ("bad_crc", {}),
+    ("stall", {"seconds": 1.5 * TIMEOUT}),
+    ("disconnect", {"seconds": 1.5 * TIMEOUT}),
+]
+
+
+@pytest.mark.parametrize("kind,params", TRANSPORT_FAULTS, ids=[f"{k}-{p.get('mode', '')}" for k, p in TRANSPORT_FAULTS])
+def test_a_single_fault_is_retried_and_the_value_is_right(rig, kind, params):
+    world, twin, table, transport = rig
+    twin.faults(transport).arm(kind, count=1, **params)
+    started = time.monotonic()
+    reported = table.position()
+    assert time.monotonic() - started < (RETRIES + 1) * 4 * TIMEOUT + 1.0
+    assert abs(reported - world.table_angle()) <= _bound(twin)
+    assert twin.faults(transport).fired() and twin.faults(transport).fired()[-1][0].value == kind
+
+
+@pytest.mark.parametrize("kind,error", [("drop_reply", DeviceTimeout), ("bad_crc", ProtocolError)])
+def test_a_persistent_fault_is_a_typed_error_in_bounded_time(rig, kind, error):
+    _, twin, table, transport = rig
+    twin.faults(transport).arm(kind, count=-1)
+    started = time.monotonic()
+    with pytest.raises(error) as raised:
+        table.position()
+    # (retries + 1) × (answer timeout + guard), and for GCS the diagnostic ERR? as well
+    assert time.monotonic() - started < 2 * (RETRIES + 1) * 2 * TIMEOUT + 1.5
+    assert raised.value.device == "table" and raised.value.cause
+    twin.faults(transport).clear()
+    time.sleep(2 * TIMEOUT)
+    table.position()  # and it recovers
+
+
+def test_a_lost_command_reply_does_not_move_twice(rig):
+    world, twin, table, transport = rig
+    start = table.wait_in_position(timeout=10)
+    twin.faults(transport).arm("drop_reply", count=1)
+    table.move_relative(0.5)  # the write's (or ERR?'s) answer is lost and retried
+    reported = table.wait_in_position(timeout=10)
+    assert abs(reported - (start + 0.5)) <= 2 * _bound(twin)
+    assert abs(world.table_angle() - reported) <= _bound(twin)
+
+
+def test_exception_answers_become_typed_errors(rig):
+    _, twin, table, transport = rig
+    if transport == "gcs":
+        twin.faults(transport).arm("exception", count=1, code=7)
+        with pytest.raises(TableFault, match="GCS error 7"):
+            table.move_absolute(0.3)
+        return
+    twin.faults(transport).arm("exception", count=1, code=2)
+    with pytest.raises(ProtocolError, match=r"encoder position register 0x0002.*code 2"):
+        table.position()
+    twin.faults(transport).arm("exception", count=1, code=4)
+    with pytest.raises(TableFault, match="code 4"):
+        table.position()
+    twin.faults(transport).arm("exception", count=1, code=6)  # busy: retried
+    assert abs(table.position() - twin.physics.true_angle()) <= _bound(twin)
+    twin.faults(transport).arm("exception", count=-1, code=6)
+    with pytest.raises(DeviceTimeout, match="code 6"):
+        table.position()
+
+
+def test_modbus_tcp_disconnect_reconnects(cell):
+    _, twin, endpoints = cell
+    table = create({**_config("modbus_tcp", endpoints), "timeout": TIMEOUT, "retries": RETRIES}, name="table")
+    with table:
+        twin.faults("modbus_tcp").arm("disconnect", count=1)
+        assert abs(table.position() - twin.physics.true_angle()) <= _bound(twin)
+        twin.faults("modbus_tcp").arm("disconnect", count=-1)
+        with pytest.raises(DeviceConnectionError):
+            table.position()
+        twin.faults("modbus_tcp").clear()
+
+
+def test_non_default_register_map(cell):
+    """Driver and twin both follow the configured map (other addresses, little-endian word order)."""
+    world = World()
+    world.mount_on_table("x")
+    register_map = {"alarm": 40, "status": 41, "encoder_position": 10, "position_command": 20, "velocity": 30,
+                    "acceleration": 31, "actual_velocity": 32, "control": 50, "word_order": "little",
+                    "counts_per_rev": 8_388_608}
+    twin = RotaryTableTwin(world, {"transports": ["modbus_tcp"], "table": FAST_TABLE, "register_map": register_map})
+    endpoints = twin.start()
+    try:
+        config = {**_config("modbus_tcp", endpoints), "register_map": register_map, "timeout": 0.5}
+        with create(config, name="table") as table:
+            table.move_absolute(-2.5)
+            reported = table.wait_in_position(timeout=10)
+            bound = _bound(twin) + math.pi / register_map["counts_per_rev"]
+            assert abs(reported - world.table_angle()) <= bound
+            assert abs(reported + 2.5) < 1 * ARCSEC
+        wrong_map = create(_config("modbus_tcp", endpoints), name="table")  # default map: gaps
+        with pytest.raises(ProtocolError, match="code 2"):
+            wrong_map.connect()
+    finally:
+        twin.stop()
+
+
+def test_factory_rejects_bad_configs():
+    with pytest.raises(ValueError, match="unknown rotary_table adapter"):
+        create({"adapter": "canopen"}, name="t")
+    with pytest.raises(ValueError, match="missing"):
+        create({"adapter": "modbus_tcp"}, name="t")
+    with pytest.raises(ValueError, match="unknown"):
+        create({"adapter": "gcs_serial", "port": "/dev/null", "unit": 3}, name="t")
+    with pytest.raises(ValueError, match="register map"):
+        create({"adapter": "modbus_rtu", "port": "/dev/null", "register_map": {"foo": 1}}, name="t")
+    with pytest.raises(DeviceConnectionError):
+        create({"adapter": "gcs_serial", "port": "/nonexistent/tty"}, name="t").connect()
+
+
+def test_twins_leak_no_threads_or_fds():
+    before_fds = len(os.listdir("/proc/self/fd"))
+    before_threads = set(threading.enumerate())
+    for _ in range(2):
+        world = World()
+        twin = RotaryTableTwin(world, {"table": FAST_TABLE})
+        endpoints = twin.start()
+        for transport in TRANSPORTS:
+            with create({**_config(transport, endpoints), "timeout": 0.5}, name="t") as table:
+                table.position()
+        twin.stop()
+    deadline = time.monotonic() + 5
+    while time.monotonic() < deadline and (set(threading.enumerate()) - before_threads):
+        time.sleep(0.05)
+    assert not (set(threading.enumerate()) - before_threads)
+    assert len(os.listdir("/proc/self/fd")) == before_fds
