@@ -90,13 +90,15 @@ def default_operator(station: StationFile) -> Operator:
     return ConsoleOperator() if choice == "console" else NoOperator()
 
 
-def create_device(kind: str, config: Any, name: str) -> Any:
-    """``drivers.<kind>.create(config, name=name)`` (the cross-team factory contract)."""
+def create_device(kind: str, config: Any, name: str, **extra: Any) -> Any:
+    """``drivers.<kind>.create(config, name=name)`` (the cross-team factory contract); ``extra``
+    settings that belong to the station rather than the device entry (the robot's envelope) are
+    added to the device's configuration."""
     module = importlib.import_module(_KIND_MODULE[kind])
     factory = getattr(module, "create", None)
     if factory is None:
         raise DeviceConnectionError(name, "create", f"{_KIND_MODULE[kind]} has no create() factory yet")
-    return factory(config.model_dump(), name=name)
+    return factory({**config.model_dump(), **extra}, name=name)
 
 
 class StationRuntime:
@@ -137,10 +139,15 @@ class StationRuntime:
             device = self._given[role]
         else:
             kind, config = self._config(role)
-            device = create_device(kind, config, name=role)
+            # The robot checks every target against the station's envelope, not a default one.
+            extra = {"envelope": self.model.envelope.model_dump()} if kind == "robot" else {}
+            device = create_device(kind, config, name=role, **extra)
         kind = "camera" if role.startswith("camera:") else role
         try:
             getattr(device, _OPEN_METHOD[kind])()
+            if kind == "robot":
+                # Commanded poses are OPR poses: the TCP is the OPR's nominal mounting on the flange.
+                device.set_tcp(np.asarray(self.model.frames.tcp_offset, dtype=float))
         except DeviceError:
             raise
         except Exception as exc:
