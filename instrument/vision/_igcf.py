@@ -103,58 +103,63 @@ def igcf_centers(
     return igcf_band(band, mask, background, saturation, half_window, min_amplitude)
 
 
-def _first_and_last_max(band):
-    """Index of the first and of the last pixel at the section maximum, per section (axis 0).
+_POWERS: dict[int, np.ndarray] = {}
 
-    Packs (value, index) into one integer so that a plain max-reduction — fast and contiguous —
-    finds both ends of the brightest run without an argmax along a strided axis.
+
+def _powers(h_max):
+    """Rows 1, t, t², t³, t⁴ for t = −h_max … h_max (cached: the same few windows recur)."""
+    if h_max not in _POWERS:
+        t = np.arange(-h_max, h_max + 1, dtype=np.float32)
+        _POWERS[h_max] = np.stack([np.ones_like(t), t, t**2, t**3, t**4])
+    return _POWERS[h_max]
+
+
+def _brightest_runs(band):
+    """Peak value, and middle and length of the run of pixels at the peak, per section (axis 0).
+
+    The pixels equal to the section's maximum are counted and their mean index taken with one
+    small matrix product — far cheaper than an argmax along the strided axis. For a contiguous
+    run (a saturated plateau, or the single peak pixel) the mean index is the run's middle.
     """
-    length = band.shape[0]
-    bits = int(length).bit_length()
-    wide = np.uint32 if bits <= 16 else np.uint64
-    key = band.astype(wide) << bits
-    idx = np.arange(length, dtype=wide)[:, None]
-    last = (key | idx).max(axis=0) & ((1 << bits) - 1)
-    first = (length - 1) - ((key | ((length - 1) - idx)).max(axis=0) & ((1 << bits) - 1))
-    return first.astype(np.intp), last.astype(np.intp), band.max(axis=0)
+    peak = band.max(axis=0)
+    at_peak = (band == peak[None, :]).astype(np.float32)
+    moments = np.stack([np.ones(band.shape[0], np.float32), np.arange(band.shape[0], dtype=np.float32)])
+    count, index_sum = moments @ at_peak
+    return peak, index_sum / count, count
 
 
 def igcf_band(band, valid, background, saturation, half_window, min_amplitude):
     """:func:`igcf_centers` on a band laid out (profile length L, sections N) — the fast path.
 
     ``band`` is an integer (or float) array; ``valid`` a bool array of the same shape or None
-    (every pixel exists).
+    (every pixel exists). Element-wise work is done in float32 on the 2h+1-row window only; the
+    moment sums and the 3×3 solution in float64.
     """
     length, n = band.shape
     cols = np.arange(n)
     bg = np.broadcast_to(np.asarray(background, dtype=float), (n,))
     if valid is not None:
         band = np.where(valid, band, 0)  # missing pixels can never be the brightest
-    if band.dtype in (np.uint8, np.uint16):
-        first, last, peak_raw = _first_and_last_max(band)
-    else:
-        peak_raw = band.max(axis=0)
-        first = np.argmax(band, axis=0)
-        last = (length - 1) - np.argmax(band[::-1], axis=0)
+    peak_raw, middle, run = _brightest_runs(band)
     amplitude = peak_raw.astype(float) - bg
     # coarse centre: the middle of the brightest run (the saturated plateau, or the peak pixel)
-    coarse = (first + last) // 2
+    coarse = np.floor(middle).astype(np.intp)
+    first = np.rint(middle - 0.5 * (run - 1)).astype(np.intp)
+    last = np.rint(middle + 0.5 * (run - 1)).astype(np.intp)
     # the profile must continue on both sides of the run, or the true peak may lie off the band
     contained = (first > 0) & (last < length - 1)
     if valid is not None:
         contained &= valid[np.maximum(first - 1, 0), cols] & valid[np.minimum(last + 1, length - 1), cols]
 
     if saturation is not None:
-        plateau = (peak_raw >= saturation) & (last > first)  # ≥ 2 neighbouring saturated pixels
-        n_dropped = np.where(plateau, last - first + 1, 0)
+        plateau = (peak_raw >= saturation) & (run >= 2)  # ≥ 2 neighbouring saturated pixels
+        n_dropped = np.where(plateau, run, 0).astype(np.intp)
     else:
         plateau = np.zeros(n, dtype=bool)
         n_dropped = np.zeros(n, dtype=np.intp)
 
     if half_window is None:
-        half_window = half_window_for_width(
-            _median_fwhm(band, bg, amplitude, np.flatnonzero(contained & ~plateau)[::8])
-        )
+        half_window = half_window_for_width(stripe_fwhm(band, bg, saturation))
     # widen the window over a removed plateau so both flanks keep h pixels
     h_sec = np.asarray(half_window, dtype=np.intp) + (n_dropped + 1) // 2
     h_max = int(min(h_sec.max(initial=MIN_HALF_WINDOW), (length - 1) // 2))
@@ -178,30 +183,32 @@ def igcf_band(band, valid, background, saturation, half_window, min_amplitude):
     for mask in masks:
         use = mask if use is None else use & mask
     # normalised to the section's amplitude: the I² weights and logs stay O(1) for any bit depth
-    inv_scale = 1.0 / np.where(amplitude > 0, amplitude, 1.0)
-    level = (values - bg[None, :]) * inv_scale[None, :]
+    inv_scale = (1.0 / np.where(amplitude > 0, amplitude, 1.0)).astype(np.float32)
+    level = values.astype(np.float32)
+    level -= bg.astype(np.float32)[None, :]
+    level *= inv_scale[None, :]
     positive = level > 0
     use = positive if use is None else use & positive
     level[~use] = 0.0
     weight = level * level
-    log_level = np.log(level, out=np.zeros_like(level), where=use)
+    level[~use] = 1.0  # ln 1 = 0: unused pixels add nothing (their weight is 0 anyway)
+    weighted_log = weight * np.log(level)
 
-    tf = t.astype(float)
-    powers = np.stack([np.ones_like(tf), tf, tf**2, tf**3, tf**4])  # (5, K)
-    s0, s1, s2, s3, s4 = powers @ weight  # each (N,)
-    z0, z1, z2 = powers[:3] @ (weight * log_level)
+    powers = _powers(h_max)
+    s0, s1, s2, s3, s4 = (powers @ weight).astype(float)  # each (N,)
+    z0, z1, z2 = (powers[:3] @ weighted_log).astype(float)
+    n_used = use.view(np.uint8).sum(axis=0, dtype=np.uint8)
     # Cramer's rule on the 3×3 normal equations; centre = −a1/(2·a2) needs only det1, det2, det
     det = s0 * (s2 * s4 - s3 * s3) - s1 * (s1 * s4 - s3 * s2) + s2 * (s1 * s3 - s2 * s2)
     det1 = s0 * (z1 * s4 - s3 * z2) - z0 * (s1 * s4 - s3 * s2) + s2 * (s1 * z2 - z1 * s2)
     det2 = s0 * (s2 * z2 - z1 * s3) - s1 * (s1 * z2 - z1 * s2) + z0 * (s1 * s3 - s2 * s2)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        a2 = det2 / det
-        offset = -det1 / (2.0 * det2)
-    ok = contained & (use.sum(axis=0) >= 3) & (det > 0) & (a2 < 0)
-    ok &= np.abs(offset) <= h_sec + 0.5
+    fittable = (n_used >= 3) & (det > 0) & (det2 < 0)  # det2/det = a2 < 0: a peak, not a dip
+    safe_det2 = np.where(fittable, det2, -1.0)
+    offset = -det1 / (2.0 * safe_det2)
+    ok = contained & fittable & (np.abs(offset) <= h_sec + 0.5)
     ok &= amplitude >= np.maximum(min_amplitude, np.finfo(float).tiny)
     center = np.where(ok, coarse + offset, np.nan)
-    return SectionCentres(center, ok, plateau & ok, amplitude, last - first + 1)
+    return SectionCentres(center, ok, plateau & ok, amplitude, run.astype(np.intp))
 
 
 def _median_fwhm(band, bg, amplitude, pick):

@@ -87,13 +87,15 @@ def _extract_band(flat, shape, line: CoarseLine, other: CoarseLine, fallback_bg,
             f"crossing zone (need ≥ {min_sections})"
         )
     base = np.rint(position).astype(np.intp) - BAND_HALF_WIDTH
-    across = base[None, :] + np.arange(2 * BAND_HALF_WIDTH + 1)[:, None]
+    k = np.arange(2 * BAND_HALF_WIDTH + 1)
+    step, stride = (1, cols) if line.vertical else (cols, 1)  # flat-index steps across / along
     if base.min() >= 0 and base.max() + 2 * BAND_HALF_WIDTH < across_len:
         valid = None  # the whole band lies in the frame (the usual case): no masks needed
+        index = (base * step + s * stride)[None, :] + (k * step)[:, None]
     else:
+        across = base[None, :] + k[:, None]
         valid = (across >= 0) & (across < across_len)
-        across = np.clip(across, 0, across_len - 1)
-    index = s[None, :] * cols + across if line.vertical else across * cols + s[None, :]
+        index = np.clip(across, 0, across_len - 1) * step + (s * stride)[None, :]
     values = flat.take(index)
     # background and noise from the band's outer edges (the stripe is far from them)
     edges = np.r_[0:2, -2:0]
