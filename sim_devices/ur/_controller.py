@@ -196,23 +196,23 @@ class URController:
             self._update_snapshot(self.sim_time())
 
     # ----------------------------------------------------------------------------- safety / program
-    def protective_stop(self, reason: str = "protective stop") -> None:
+    def protective_stop(self, reason: str = "protective stop", at_time: float | None = None) -> None:
         self._safety_stop(SAFETY_MODE_PROTECTIVE_STOP, SAFETY_BIT_PROTECTIVE | SAFETY_BIT_STOPPED_DUE_TO_SAFETY,
-                          reason)
+                          reason, at_time)
 
-    def emergency_stop(self, reason: str = "emergency stop") -> None:
+    def emergency_stop(self, reason: str = "emergency stop", at_time: float | None = None) -> None:
         self._safety_stop(SAFETY_MODE_ROBOT_EMERGENCY_STOP,
-                          SAFETY_BIT_ROBOT_ESTOP | SAFETY_BIT_ESTOP | SAFETY_BIT_STOPPED_DUE_TO_SAFETY, reason)
+                          SAFETY_BIT_ROBOT_ESTOP | SAFETY_BIT_ESTOP | SAFETY_BIT_STOPPED_DUE_TO_SAFETY, reason, at_time)
         with self.lock:
             self.robot_mode = ROBOT_MODE_POWER_OFF
 
-    def _safety_stop(self, mode: int, bits: int, reason: str) -> None:
+    def _safety_stop(self, mode: int, bits: int, reason: str, at_time: float | None = None) -> None:
         with self.changed:
             self.safety_mode = mode
             self.safety_bits = bits
             self.log(reason)
             if self.motion is not None:
-                self.motion.stop(self.sim_time(), self.config.stop_deceleration)
+                self.motion.stop(self.sim_time() if at_time is None else at_time, self.config.stop_deceleration)
             self.stop_program(reason)
 
     def clear_safety(self) -> None:
@@ -286,18 +286,23 @@ class URController:
 
     def _mid_move_faults(self, motion: Motion, t: float) -> None:
         armed = self.faults.peek(*MID_MOVE_FAULTS)
-        if armed is None or motion.stopped or motion.fraction(t) < float(armed.params.get("at", 0.5)):
+        at = float(armed.params.get("at", 0.5)) if armed is not None else 1.0
+        if armed is None or motion.stopped or motion.fraction(t) < at:
             return
         self.faults.take(armed.kind)
-        self.trigger(armed.kind)
+        # A late tick (loaded machine, high time scale) must not move the fault: it happens at the
+        # simulated instant the path crossed ``at``.
+        self.trigger(armed.kind, at_time=motion.time_at_fraction(at))
+        if self.motion is motion:
+            self._sample(t)
 
-    def trigger(self, kind: FaultKind | str) -> None:
-        """Make a fault happen now."""
+    def trigger(self, kind: FaultKind | str, at_time: float | None = None) -> None:
+        """Make a fault happen now (or, for a safety stop, at simulated time ``at_time``)."""
         kind = FaultKind(kind)
         if kind is FaultKind.PROTECTIVE_STOP:
-            self.protective_stop("protective stop (injected)")
+            self.protective_stop("protective stop (injected)", at_time)
         elif kind is FaultKind.EMERGENCY_STOP:
-            self.emergency_stop("emergency stop (injected)")
+            self.emergency_stop("emergency stop (injected)", at_time)
         elif kind is FaultKind.PROGRAM_STOPPED:
             self.stop_program("program stopped (injected)")
         elif kind is FaultKind.DISCONNECT:

@@ -102,6 +102,17 @@ class Motion:
         s, _ = self.profile.at(t)
         return 1.0 if self.length <= 0 else min(s / self.length, 1.0)
 
+    def time_at_fraction(self, fraction: float) -> float:
+        """Simulated time at which the path reaches ``fraction`` (bisection on the monotonic profile)."""
+        lo, hi = self.profile.t0, self.profile.t_end
+        for _ in range(50):
+            mid = 0.5 * (lo + hi)
+            if self.fraction(mid) < fraction:
+                lo = mid
+            else:
+                hi = mid
+        return hi
+
     def speed(self, t: float) -> float:
         return self.profile.at(t)[1]
 
