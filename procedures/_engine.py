@@ -333,13 +333,19 @@ class RunEngine:
 
     def _do_step(self, step: Step) -> bool:
         t_start = time.time()
-        self._ensure_setup(step.setup)
+        # The interferometer is aimed at the reflector where it stands, so a new alignment waits
+        # until the robot has brought the OPR to the first point of the line.
+        aligning = step.setup.startswith("align:") and self._setup != step.setup
+        if not aligning:
+            self._ensure_setup(step.setup)
         self._check_abort()
         reference: dict[str, Any] = {}
         if step.tcp_pose is not None:
             speed, acceleration = self._robot_speed()
             self.station.robot.move_linear(np.asarray(step.tcp_pose), speed, acceleration,
                                            timeout=self.params.move_timeout_s)
+        if aligning:
+            self._ensure_setup(step.setup)
         if step.table_angle is not None:
             table = self.station.table
             table.move_absolute(step.table_angle, speed=np.radians(self.params.table_speed_deg_s))

@@ -140,6 +140,7 @@ class CellHost:
             return "pong"
         if command == "mount_on_table":
             world.mount_on_table(args["axis"])
+            self._twins["rotary_table"].sync()  # the OPR now takes the table's angle at once
             return world.mount
         if command == "mount_on_robot":
             world.mount_on_robot()
