@@ -109,6 +109,8 @@ def render_cross(
     horizontal=True,
     vertical=True,
     extra_crosses=(),
+    vertical_amplitude=None,
+    background_gradient=(0.0, 0.0),
 ):
     """A cross image with known truth.
 
@@ -130,6 +132,10 @@ def render_cross(
         Leave out one of the stripes.
     extra_crosses : sequence of (center, angle)
         Further crosses of the same kind (to test the "two crosses" error).
+    vertical_amplitude : float or None
+        Peak of the vertical stripe if it differs from ``amplitude`` (two unequal fan lasers).
+    background_gradient : (gx, gy)
+        Ambient light slope in grey levels per pixel along x and y, about the frame's centre.
 
     Returns
     -------
@@ -140,13 +146,17 @@ def render_cross(
     phi_v = angle + perpendicularity / 2.0
     light = np.zeros(shape)
     if horizontal:
-        light += stripe_image(shape, center, phi_h, sigma, extent=h_extent)
+        light += amplitude * stripe_image(shape, center, phi_h, sigma, extent=h_extent)
     if vertical:
-        light += stripe_image(shape, center, phi_v, sigma, vertical=True, extent=v_extent)
+        v_amp = amplitude if vertical_amplitude is None else vertical_amplitude
+        light += v_amp * stripe_image(shape, center, phi_v, sigma, vertical=True, extent=v_extent)
     for c, a in extra_crosses:
-        light += stripe_image(shape, c, a, sigma) + stripe_image(shape, c, a, sigma, vertical=True)
+        light += amplitude * (stripe_image(shape, c, a, sigma) + stripe_image(shape, c, a, sigma, vertical=True))
+    rows, cols = shape
+    ambient = background + background_gradient[0] * (np.arange(cols)[None, :] - (cols - 1) / 2.0)
+    ambient = ambient + background_gradient[1] * (np.arange(rows)[:, None] - (rows - 1) / 2.0)
     rng = np.random.default_rng(seed)
-    img = background + amplitude * light + rng.normal(0.0, noise, size=shape)
+    img = ambient + light + rng.normal(0.0, noise, size=shape)
     img = np.clip(np.rint(img), 0, saturation).astype(dtype)
     return img, Truth(np.array(center, dtype=float), phi_h, phi_v)
 

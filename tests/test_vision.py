@@ -53,6 +53,9 @@ CASES = {
     "16-bit": dict(angle=0.07, dtype=np.uint16, saturation=65535, amplitude=40000.0, background=900.0,
                    noise=400.0, center=(166.6, 113.3)),
     "wide stripe": dict(angle=0.1, sigma=3.5, center=(158.0, 121.0)),
+    "dim vertical stripe": dict(angle=0.2, vertical_amplitude=70.0, center=(150.2, 118.3)),
+    "background gradient": dict(angle=-0.25, background=30.0, amplitude=180.0, background_gradient=(0.15, -0.1),
+                                center=(170.7, 125.4)),
     "narrow stripe": dict(angle=-0.2, sigma=1.1, center=(161.1, 117.7)),
 }
 
@@ -67,6 +70,7 @@ def test_centre_and_angle_match_truth(name):
     amplitude, noise = kwargs.get("amplitude", 200.0), kwargs.get("noise", 2.0)
     # above saturation the flanks carry the information: judge by the unsaturated-equivalent bound
     effective_amplitude = min(amplitude, saturation - kwargs.get("background", 10.0))
+    effective_amplitude = min(effective_amplitude, kwargs.get("vertical_amplitude") or np.inf)
     tol_centre, tol_angle = _tolerances(m, kwargs.get("sigma", 2.0), effective_amplitude, noise)
     if kwargs.get("sigma", 2.0) > 3.0:  # the 9-px window covers only ±1.3σ: allow its precision loss
         tol_centre, tol_angle = 1.5 * tol_centre, 1.5 * tol_angle

@@ -145,7 +145,7 @@ def _refine(small, line, other, level, background, radius):
     if keep.sum() < 3:
         return line
     centroid = (excess * r).sum(axis=0)[keep] / total[keep]
-    fit = fit_line_bisquare(np.column_stack([x[keep], centroid]), tol=1e-3, max_iter=3)
+    fit = fit_line_bisquare(np.column_stack([x[keep], centroid]), tol=1e-3, max_iter=2)
     return CoarseLine(line.vertical, fit.intercept, fit.slope, line.votes)
 
 

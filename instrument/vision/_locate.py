@@ -22,6 +22,8 @@ MIN_SECTIONS = 30  # fewer usable cross-sections than this: the stripe is too sh
 MIN_AMPLITUDE_SIGMAS = 6.0  # sections whose peak is weaker than this many noise σ are left out
 DEFAULT_SATURATION = {np.dtype(np.uint8): 255, np.dtype(np.uint16): 65535}
 MIN_SIDE = 16
+EDGE_ROWS = np.r_[0:2, -2:0]  # band rows that sample the background (≥ 11 px from the line)
+BACKGROUND_SPAN = 31  # sections averaged for the local background
 
 
 class _Band(NamedTuple):
@@ -33,7 +35,7 @@ class _Band(NamedTuple):
     valid: np.ndarray | None  # same shape, or None when every pixel lies in the frame
     along: np.ndarray  # (N,) section index
     base: np.ndarray  # (N,) first pixel of the band across the stripe
-    background: float
+    background: np.ndarray  # (N,) local background per section
     noise: float
     vertical: bool
 
@@ -97,14 +99,35 @@ def _extract_band(flat, shape, line: CoarseLine, other: CoarseLine, fallback_bg,
         valid = (across >= 0) & (across < across_len)
         index = np.clip(across, 0, across_len - 1) * step + (s * stride)[None, :]
     values = flat.take(index)
-    # background and noise from the band's outer edges (the stripe is far from them)
-    edges = np.r_[0:2, -2:0]
-    edge_values = values[edges].ravel() if valid is None else values[edges][valid[edges]]
-    if edge_values.size >= 16:
-        background, noise = float(edge_values.mean()), max(float(edge_values.std()), 0.5)
-    else:  # band cut off by the frame on both sides: use the frame's figures
-        background, noise = fallback_bg, 0.5
+    background, noise = _local_background(values, valid, fallback_bg)
     return _Band(values, valid, s, base, background, noise, line.vertical)
+
+
+def _local_background(values, valid, fallback_bg):
+    """Background per section and noise σ, from the band's two outer rows on each side.
+
+    The edge pixels are averaged over ``BACKGROUND_SPAN`` neighbouring sections (a running mean),
+    so a smooth gradient of ambient light is followed while the estimate stays quiet.
+    """
+    edges = values[EDGE_ROWS].astype(np.float32)
+    weight = np.ones(edges.shape, np.float32) if valid is None else valid[EDGE_ROWS].astype(np.float32)
+    if weight.sum() < 16:  # band cut off by the frame on both sides: use the frame's figures
+        return np.full(values.shape[1], fallback_bg), 0.5
+    total = _running_sum((edges * weight).sum(axis=0), BACKGROUND_SPAN)
+    count = _running_sum(weight.sum(axis=0), BACKGROUND_SPAN)
+    background = np.where(count > 0, total / np.maximum(count, 1.0), fallback_bg)
+    residual = (edges - background[None, :].astype(np.float32)) * weight
+    noise = float(np.sqrt((residual * residual).sum() / weight.sum()))
+    return background, max(noise, 0.5)
+
+
+def _running_sum(x, span):
+    """Sum over a centred window of ``span`` elements (shorter at the ends)."""
+    c = np.concatenate([[0.0], np.cumsum(x, dtype=float)])
+    i = np.arange(len(x))
+    lo = np.maximum(i - span // 2, 0)
+    hi = np.minimum(i + span // 2 + 1, len(x))
+    return c[hi] - c[lo]
 
 
 def _fit_stripe(band: _Band, centres: SectionCentres, min_sections) -> _StripeFit:
@@ -120,14 +143,14 @@ def _fit_stripe(band: _Band, centres: SectionCentres, min_sections) -> _StripeFi
     along = band.along[ok].astype(float)
     points = np.column_stack([centre, along] if band.vertical else [along, centre])
     fit = fit_line_bisquare(points, independent=1 if band.vertical else 0)
-    peak = float(centres.peak[ok].max() + band.background)
+    peak = float((centres.peak + band.background)[ok].max())
     return _StripeFit(fit, points, int(centres.saturated.sum()), peak)
 
 
 def _section_centres(bands, saturation, half_window) -> list[SectionCentres]:
     """IGCF of every section of both bands in one vectorised call (halves the per-call overhead)."""
     sizes = [b.values.shape[1] for b in bands]
-    per_section = lambda f: np.concatenate([np.full(n, f(b)) for b, n in zip(bands, sizes)])  # noqa: E731
+    per_section = lambda f: np.concatenate([np.broadcast_to(f(b), (n,)) for b, n in zip(bands, sizes)])  # noqa: E731
     if half_window is None:  # each stripe's window from its own width
         half_window = per_section(lambda b: half_window_for_width(stripe_fwhm(b.values, b.background, saturation)))
     values = np.concatenate([b.values for b in bands], axis=1)
