@@ -289,3 +289,20 @@ def test_non_contiguous_view_is_accepted():
     view = img[:, ::2]  # every second column: the cross in a strided view
     m = locate_cross(view)
     assert m.center == pytest.approx([truth.center[0] / 2, truth.center[1]], abs=0.05)
+
+
+def test_hot_pixels_and_a_reflection_do_not_disturb():
+    import cv2
+
+    rng = np.random.default_rng(12)
+    img, truth = render_cross(SHAPE, (150.3, 120.7), 0.1, seed=13)
+    img[rng.integers(0, SHAPE[0], 40), rng.integers(0, SHAPE[1], 40)] = 255  # hot pixels
+    cv2.circle(img, (265, 45), 12, 255, -1)  # a saturated reflection
+    m = locate_cross(img)
+    assert np.hypot(*(m.center - truth.center)) < 0.02
+    assert abs(m.angle - truth.angle) < 2e-4
+    # hot pixels alone are no cross
+    blank, _ = render_cross(SHAPE, horizontal=False, vertical=False, seed=14)
+    blank[rng.integers(0, SHAPE[0], 40), rng.integers(0, SHAPE[1], 40)] = 255
+    with pytest.raises(CrossNotFound, match="no cross"):
+        locate_cross(blank)

@@ -107,9 +107,9 @@ _POWERS: dict[int, np.ndarray] = {}
 
 
 def _powers(h_max):
-    """Rows 1, t, t², t³, t⁴ for t = −h_max … h_max (cached: the same few windows recur)."""
+    """Rows 1, t, t², t³, t⁴ for t = −h_max … h_max+1 (cached: the same few windows recur)."""
     if h_max not in _POWERS:
-        t = np.arange(-h_max, h_max + 1, dtype=np.float32)
+        t = np.arange(-h_max, h_max + 2, dtype=np.float32)
         _POWERS[h_max] = np.stack([np.ones_like(t), t, t**2, t**3, t**4])
     return _POWERS[h_max]
 
@@ -144,6 +144,7 @@ def igcf_band(band, valid, background, saturation, half_window, min_amplitude):
     amplitude = peak_raw.astype(float) - bg
     # coarse centre: the middle of the brightest run (the saturated plateau, or the peak pixel)
     coarse = np.floor(middle).astype(np.intp)
+    half_step = (middle - coarse) > 0.25  # an even run: its middle lies between two pixels
     first = np.rint(middle - 0.5 * (run - 1)).astype(np.intp)
     last = np.rint(middle + 0.5 * (run - 1)).astype(np.intp)
     # the profile must continue on both sides of the run, or the true peak may lie off the band
@@ -165,17 +166,19 @@ def igcf_band(band, valid, background, saturation, half_window, min_amplitude):
     h_max = int(min(h_sec.max(initial=MIN_HALF_WINDOW), (length - 1) // 2))
     h_sec = np.minimum(h_sec, h_max)
 
-    t = np.arange(-h_max, h_max + 1)
+    # the window is symmetric about the run's middle: t = −h…h, or −h+1…h when the middle is at
+    # +1/2 — an off-centre window would weigh one flank more, which biases clipped profiles
+    t = np.arange(-h_max, h_max + 2)
     rows = coarse[None, :] + t[:, None]
     use = None  # window pixels that enter the fit; None = all so far (skips mask work)
-    if coarse.min() - h_max < 0 or coarse.max() + h_max >= length:
+    if coarse.min() - h_max < 0 or coarse.max() + h_max + 1 >= length:
         use = (rows >= 0) & (rows < length)
         rows = np.clip(rows, 0, length - 1)
     flat_index = rows * n + cols[None, :]
     values = band.ravel().take(flat_index)
     masks = []
-    if h_sec.min() < h_max:
-        masks.append(np.abs(t)[:, None] <= h_sec[None, :])
+    shift = half_step.astype(np.intp)
+    masks.append(np.abs(2 * t[:, None] - shift[None, :]) <= (2 * h_sec - shift)[None, :])
     if valid is not None:
         masks.append(valid.ravel().take(flat_index))
     if plateau.any():
