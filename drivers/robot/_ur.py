@@ -384,8 +384,9 @@ class URRobot:
             pose = np.asarray(self._receive.getActualTCPPose(), dtype=float)
             dp = float(np.linalg.norm(pose[:3] - target[:3]))
             dr = _rotation_angle_between(pose[3:], target[3:])
-            if dp <= POSITION_TOLERANCE and dr <= ORIENTATION_TOLERANCE:
-                return
+            at_rest = float(np.max(np.abs(self._receive.getActualTCPSpeed()))) < 1e-6
+            if dp <= POSITION_TOLERANCE and dr <= ORIENTATION_TOLERANCE and at_rest:
+                return  # the data stream shows the final, resting state (it may lag the done flag)
             if time.monotonic() > deadline:
                 error = self._safety_error(operation)
                 if error is not None:
