@@ -52,8 +52,11 @@ class CoarseLine:
         return self.intercept + self.slope * np.asarray(independent, dtype=float)
 
     def describe(self) -> str:
+        """E.g. ``near-vertical stripe (x ≈ 113 − 0.052·y)``, full-resolution pixels."""
         kind = "near-vertical" if self.vertical else "near-horizontal"
-        return f"{kind} stripe ({'x' if self.vertical else 'y'} ≈ {self.intercept:.0f} + {self.slope:.3f}·{'y' if self.vertical else 'x'})"
+        dep, ind = ("x", "y") if self.vertical else ("y", "x")
+        sign = "+" if self.slope >= 0 else "−"
+        return f"{kind} stripe ({dep} ≈ {self.intercept:.0f} {sign} {abs(self.slope):.3f}·{ind})"
 
 
 @dataclass(frozen=True)
