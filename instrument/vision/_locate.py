@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import cv2
 import numpy as np
 
 from instrument.vision._detect import CoarseLine, find_stripes
@@ -113,21 +114,19 @@ def _local_background(values, valid, fallback_bg):
     weight = np.ones(edges.shape, np.float32) if valid is None else valid[EDGE_ROWS].astype(np.float32)
     if weight.sum() < 16:  # band cut off by the frame on both sides: use the frame's figures
         return np.full(values.shape[1], fallback_bg), 0.5
-    total = _running_sum((edges * weight).sum(axis=0), BACKGROUND_SPAN)
-    count = _running_sum(weight.sum(axis=0), BACKGROUND_SPAN)
-    background = np.where(count > 0, total / np.maximum(count, 1.0), fallback_bg)
+    # running sums of edge levels and of edge-pixel counts over BACKGROUND_SPAN sections at once
+    sums = cv2.boxFilter(
+        np.stack([(edges * weight).sum(axis=0), weight.sum(axis=0)]),
+        -1,
+        (BACKGROUND_SPAN, 1),
+        normalize=False,
+        borderType=cv2.BORDER_CONSTANT,
+    )
+    total, count = sums[0], sums[1]
+    background = np.where(count > 0.5, total / np.maximum(count, 1.0), fallback_bg)
     residual = (edges - background[None, :].astype(np.float32)) * weight
     noise = float(np.sqrt((residual * residual).sum() / weight.sum()))
     return background, max(noise, 0.5)
-
-
-def _running_sum(x, span):
-    """Sum over a centred window of ``span`` elements (shorter at the ends)."""
-    c = np.concatenate([[0.0], np.cumsum(x, dtype=float)])
-    i = np.arange(len(x))
-    lo = np.maximum(i - span // 2, 0)
-    hi = np.minimum(i + span // 2 + 1, len(x))
-    return c[hi] - c[lo]
 
 
 def _fit_stripe(band: _Band, centres: SectionCentres, min_sections) -> _StripeFit:
