@@ -306,3 +306,20 @@ def test_hot_pixels_and_a_reflection_do_not_disturb():
     blank[rng.integers(0, SHAPE[0], 40), rng.integers(0, SHAPE[1], 40)] = 255
     with pytest.raises(CrossNotFound, match="no cross"):
         locate_cross(blank)
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_random_crosses(seed):
+    """Seeded random geometry: any angle within ±0.45 rad, a few degrees off square, anywhere."""
+    rng = np.random.default_rng(1000 + seed)
+    rows, cols = SHAPE
+    center = (rng.uniform(0.15, 0.85) * cols, rng.uniform(0.15, 0.85) * rows)
+    angle, perpendicularity = rng.uniform(-0.45, 0.45), rng.uniform(-0.06, 0.06)
+    sigma, amplitude = rng.uniform(1.2, 3.0), rng.uniform(80.0, 230.0)
+    img, truth = render_cross(SHAPE, center, angle, perpendicularity, sigma=sigma, amplitude=amplitude,
+                              seed=seed)
+    m = locate_cross(img)
+    tol_centre, tol_angle = _tolerances(m, sigma, amplitude, 2.0)
+    assert np.hypot(*(m.center - truth.center)) < tol_centre
+    assert abs(m.angle - truth.angle) < tol_angle
+    assert abs(m.perpendicularity - truth.perpendicularity) < 2 * tol_angle
