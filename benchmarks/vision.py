@@ -69,7 +69,8 @@ def saturated_bias(n, amplitude, seed):
     error = r.center[r.valid] - truth[r.valid]
     clean, truth_c = section_profiles(2000, amplitude=amplitude, noise=0.0, seed=seed, quantize=False)
     rc = igcf_centers(clean, axis=0, background=10.0, saturation=255)
-    return float(np.mean(error)), float(np.std(error) / np.sqrt(len(error))), float(np.max(np.abs(rc.center - truth_c)))
+    worst_clean = float(np.max(np.abs(rc.center - truth_c)))
+    return float(np.mean(error)), float(np.std(error) / np.sqrt(len(error))), worst_clean
 
 
 def image_accuracy(n_images, shape, seed):
@@ -105,7 +106,8 @@ def main(argv=None):
             img, _ = render_cross(shape, (0.47 * shape[1], 0.52 * shape[0]), 0.2, 0.01, seed=1, **kwargs)
             best, median, wall = time_per_image(img, batches, per_batch, kwargs.get("saturation"))
             label = f"time {shape[1]}×{shape[0]} {bits}-bit (ms/image, CPU best / median / wall best)"
-            row(label, f"{best:.2f} / {median:.2f} / {wall:.2f}", f"≤ {TARGETS[shape]}", "ms", best <= TARGETS[shape])
+            measured = f"{best:.2f} / {median:.2f} / {wall:.2f}"
+            row(label, measured, f"≤ {TARGETS[shape]}", "ms", best <= TARGETS[shape])
 
     for sigma, amplitude, noise in [(2.0, 200.0, 2.0), (1.5, 150.0, 3.0), (1.2, 100.0, 2.0)]:
         ratio, _ = section_precision(n_sections, sigma, amplitude, noise, seed=3)

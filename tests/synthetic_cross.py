@@ -151,7 +151,8 @@ def render_cross(
         v_amp = amplitude if vertical_amplitude is None else vertical_amplitude
         light += v_amp * stripe_image(shape, center, phi_v, sigma, vertical=True, extent=v_extent)
     for c, a in extra_crosses:
-        light += amplitude * (stripe_image(shape, c, a, sigma) + stripe_image(shape, c, a, sigma, vertical=True))
+        light += amplitude * stripe_image(shape, c, a, sigma)
+        light += amplitude * stripe_image(shape, c, a, sigma, vertical=True)
     rows, cols = shape
     ambient = background + background_gradient[0] * (np.arange(cols)[None, :] - (cols - 1) / 2.0)
     ambient = ambient + background_gradient[1] * (np.arange(rows)[:, None] - (rows - 1) / 2.0)

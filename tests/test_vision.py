@@ -54,8 +54,8 @@ CASES = {
                    noise=400.0, center=(166.6, 113.3)),
     "wide stripe": dict(angle=0.1, sigma=3.5, center=(158.0, 121.0)),
     "dim vertical stripe": dict(angle=0.2, vertical_amplitude=70.0, center=(150.2, 118.3)),
-    "background gradient": dict(angle=-0.25, background=30.0, amplitude=180.0, background_gradient=(0.15, -0.1),
-                                center=(170.7, 125.4)),
+    "background gradient": dict(angle=-0.25, background=30.0, amplitude=180.0,
+                                background_gradient=(0.15, -0.1), center=(170.7, 125.4)),
     "narrow stripe": dict(angle=-0.2, sigma=1.1, center=(161.1, 117.7)),
 }
 
@@ -79,7 +79,8 @@ def test_centre_and_angle_match_truth(name):
     assert abs(m.perpendicularity - truth.perpendicularity) < 2 * tol_angle
     # quality figures
     assert m.horizontal.sections >= 100 and m.vertical.sections >= 100
-    assert m.horizontal.residual_rms < 3 * 1.15 * cramer_rao(kwargs.get("sigma", 2.0), effective_amplitude, noise) + 0.01
+    per_section = 1.15 * cramer_rao(kwargs.get("sigma", 2.0), effective_amplitude, noise)
+    assert m.horizontal.residual_rms < 3 * per_section + 0.01
     if amplitude + kwargs.get("background", 10.0) > saturation * 1.2:
         assert m.horizontal.saturated_sections > 0.9 * m.horizontal.sections
         assert m.peak_level == saturation

@@ -6,9 +6,9 @@ factor), so the full-resolution image is read once by the averaging and never co
 1. background = median, noise = scaled MAD of the small image; no cross if nothing stands out;
 2. binarise at a set level above background (a fraction of the contrast, never below 6 noise σ),
    or Otsu's level on request;
-3. Hough transform (1° steps) of the binary image, itself reduced 2× more; the strongest near-horizontal and the strongest
-   near-vertical line are the two stripes (split at 45°);
-4. each line is refined on the small image (intensity centroids per small column/row, bisquare fit,
+3. Hough transform (1° steps) of the binary image, itself reduced 2× more; the strongest
+   near-horizontal and the strongest near-vertical line are the two stripes (split at 45°);
+4. each line is refined on the small image (intensity centroids per small column/row, trimmed fit,
    the crossing left out) to about a pixel of the full frame;
 5. what the two stripes do not explain is searched again for lines: another long stripe means two
    crosses (or a stray stripe), which is an error, not a guess.
@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from instrument.vision._linefit import _median, fit_line_bisquare
+from instrument.vision._linefit import _median, _weighted_line
 from instrument.vision._types import CrossNotFound
 
 SMALL_SIDE = 256  # target long side of the block-averaged image, px
@@ -29,9 +29,9 @@ HOUGH_THETA = np.pi / 180.0
 MIN_CONTRAST_SIGMAS = 10.0  # the brightest structure must stand this many noise σ above background
 LEVEL_FRACTION = 0.15  # binarisation level as a fraction of the contrast (dim stripes down to ~1/5)
 MIN_STRIPE_PX = 40.0  # a stripe shorter than this (full-resolution px) is not looked for
-EXTRA_STRIPE_FRACTION = 0.3
+EXTRA_STRIPE_FRACTION = 0.3  # another line with this share of the weaker stripe's votes = 2nd cross
 HOUGH_MIN_SIDE = 96  # Hough on a 2× further reduced copy only if that keeps ≥ this many px a side
-REFINE_MIN_RADIUS = 5  # small-image px searched either side of the Hough line  # another line with this share of the weaker stripe's votes = 2nd cross
+REFINE_MIN_RADIUS = 5  # small-image px searched either side of the Hough line
 
 
 @dataclass(frozen=True)
@@ -89,7 +89,10 @@ def downsample(img, factor):
 
 
 def _otsu_level(small, saturation):
-    scaled = small if small.dtype == np.uint8 else np.clip(small * (255.0 / saturation), 0, 255).astype(np.uint8)
+    if small.dtype == np.uint8:
+        scaled = small
+    else:
+        scaled = np.clip(small * (255.0 / saturation), 0, 255).astype(np.uint8)
     level, _ = cv2.threshold(scaled, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
     return level if small.dtype == np.uint8 else level * saturation / 255.0
 
@@ -130,7 +133,7 @@ def _to_coarse(line, factor):
 
 
 def _refine(small, line, other, level, background, radius):
-    """Intensity centroids across ``line`` in each small column/row, then a bisquare line fit."""
+    """Intensity centroids across ``line`` in each small column/row, then a trimmed line fit."""
     data = small.T if line.vertical else small  # work as if horizontal: sections are columns
     rows, cols = data.shape
     x = np.arange(cols)
@@ -148,8 +151,24 @@ def _refine(small, line, other, level, background, radius):
     if keep.sum() < 3:
         return line
     centroid = (excess * r).sum(axis=0)[keep] / total[keep]
-    fit = fit_line_bisquare(np.column_stack([x[keep], centroid]), tol=1e-3, max_iter=2)
-    return CoarseLine(line.vertical, fit.intercept, fit.slope, line.votes)
+    intercept, slope = _trimmed_line(x[keep].astype(float), centroid)
+    return CoarseLine(line.vertical, intercept, slope, line.votes)
+
+
+def _trimmed_line(u, v):
+    """Least-squares line v = a + b·u, refitted once without points beyond 3 RMS (+0.5 px).
+
+    A pixel-level answer is all the refinement needs; two plain fits are cheaper than IRLS.
+    """
+    u0 = u.mean()
+    du = u - u0
+    weight = np.ones_like(du)
+    intercept, slope = _weighted_line(du, v, weight)
+    residual = v - (intercept + slope * du)
+    inlier = np.abs(residual) <= 3.0 * np.sqrt(np.mean(residual * residual)) + 0.5
+    if inlier.sum() >= 3 and not inlier.all():
+        intercept, slope = _weighted_line(du, v, inlier.astype(float))
+    return float(intercept - slope * u0), float(slope)
 
 
 def _erase(binary, line, half_width):

@@ -64,9 +64,10 @@ def fit_line_bisquare(points, *, independent=0, tuning=BISQUARE_TUNING, tol=1e-7
     """Fit a straight line to 2-D points by iteratively reweighted least squares (Tukey's biweight).
 
     Starts from ordinary least squares, then repeats: residual scale s = MAD/0.6745 (median absolute
-    residual from the current line, so at least half the points keep a weight), weights w = (1 − (r / (tuning·s))²)² for |r| < tuning·s and 0
-    beyond, weighted least squares — until the coefficient change is below ``tol`` relative to the
-    coefficients (the slope measured as its effect over the half-range of the points).
+    residual from the current line, so at least half the points keep a weight), weights
+    w = (1 − (r / (tuning·s))²)² for |r| < tuning·s and 0 beyond, weighted least squares — until the
+    coefficient change is below ``tol`` relative to the coefficients (the slope measured as its
+    effect over the half-range of the points).
 
     Parameters
     ----------

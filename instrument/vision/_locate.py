@@ -59,7 +59,9 @@ def _check_image(img, saturation):
             + (" — convert colour images to one channel first" if img.ndim == 3 else "")
         )
     if min(img.shape) < MIN_SIDE:
-        raise ValueError(f"image is too small to hold a cross: shape {img.shape}, need ≥ {MIN_SIDE} px a side")
+        raise ValueError(
+            f"image is too small to hold a cross: shape {img.shape}, need ≥ {MIN_SIDE} px a side"
+        )
     full_scale = DEFAULT_SATURATION[img.dtype]
     if saturation is None:
         return full_scale
@@ -149,9 +151,14 @@ def _fit_stripe(band: _Band, centres: SectionCentres, min_sections) -> _StripeFi
 def _section_centres(bands, saturation, half_window) -> list[SectionCentres]:
     """IGCF of every section of both bands in one vectorised call (halves the per-call overhead)."""
     sizes = [b.values.shape[1] for b in bands]
-    per_section = lambda f: np.concatenate([np.broadcast_to(f(b), (n,)) for b, n in zip(bands, sizes)])  # noqa: E731
+
+    def per_section(figure):  # one value per stripe (or per section) → one per section
+        return np.concatenate([np.broadcast_to(figure(b), (n,)) for b, n in zip(bands, sizes)])
+
     if half_window is None:  # each stripe's window from its own width
-        half_window = per_section(lambda b: half_window_for_width(stripe_fwhm(b.values, b.background, saturation)))
+        half_window = per_section(
+            lambda b: half_window_for_width(stripe_fwhm(b.values, b.background, saturation))
+        )
     values = np.concatenate([b.values for b in bands], axis=1)
     valid = None
     if any(b.valid is not None for b in bands):
@@ -219,8 +226,11 @@ def locate_cross(img, saturation=None, *, threshold=None, half_window=None, min_
     detection = find_stripes(img, saturation, threshold)
     flat = np.ascontiguousarray(img).ravel()
     bands = [
-        _extract_band(flat, img.shape, detection.horizontal, detection.vertical, detection.background, min_sections),
-        _extract_band(flat, img.shape, detection.vertical, detection.horizontal, detection.background, min_sections),
+        _extract_band(flat, img.shape, line, other, detection.background, min_sections)
+        for line, other in (
+            (detection.horizontal, detection.vertical),
+            (detection.vertical, detection.horizontal),
+        )
     ]
     h_fit, v_fit = (
         _fit_stripe(band, centres, min_sections)
