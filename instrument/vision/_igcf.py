@@ -20,6 +20,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from instrument.vision._linefit import _median
+
 MIN_HALF_WINDOW, MAX_HALF_WINDOW = 2, 4  # windows of 5…9 px (method.md §2.2)
 FWHM_PER_SIGMA = 2.0 * np.sqrt(2.0 * np.log(2.0))
 
@@ -214,15 +216,6 @@ def igcf_band(band, valid, background, saturation, half_window, min_amplitude):
     return SectionCentres(center, ok, plateau & ok, amplitude, run.astype(np.intp))
 
 
-def _median_fwhm(band, bg, amplitude, pick):
-    """Median count of pixels at or above half maximum over the sections ``pick``."""
-    if len(pick) == 0:
-        return FWHM_PER_SIGMA * 2.0  # nothing to measure: assume σ = 2 px
-    sub = band[:, pick]
-    counts = (sub >= (bg[pick] + 0.5 * amplitude[pick])[None, :]).sum(axis=0)
-    return float(np.median(counts))
-
-
 def stripe_fwhm(band, background, saturation=None, stride=8):
     """Width at half maximum of a stripe, px along the profiles: the median over every
     ``stride``-th section of a band laid out (profile length L, sections N), saturated sections
@@ -237,4 +230,4 @@ def stripe_fwhm(band, background, saturation=None, stride=8):
     if not usable.any():
         return FWHM_PER_SIGMA * 2.0  # nothing to measure: assume σ = 2 px
     counts = (sub[:, usable] >= (0.5 * (bg + peak))[usable][None, :]).sum(axis=0)
-    return float(np.median(counts))
+    return _median(counts.astype(float))
