@@ -11,6 +11,7 @@ until ``close()``; meanwhile readers get ``DeviceConnectionError``.
 from __future__ import annotations
 
 import itertools
+import logging
 import math
 import os
 import socket
@@ -37,6 +38,17 @@ from drivers.interferometer._layout import (
     decode_status,
     encode_command,
 )
+
+
+class _DropSplitFrameWarnings(logging.Filter):
+    """python-can's socketcand client logs a warning whenever a TCP read ends mid-frame, which is
+    normal on a 1 kHz stream (it waits for the rest); keep its other warnings."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return "incomplete message" not in record.getMessage()
+
+
+logging.getLogger("can.interfaces.socketcand.socketcand").addFilter(_DropSplitFrameWarnings())
 
 _RECV_POLL = 0.05  # s: how long one bus.recv may block, i.e. how fast close() and EOF are noticed
 _GARBAGE_BEFORE_REOPEN = 3  # consecutive undecodable reads before the transport is re-opened
@@ -81,7 +93,7 @@ class CanInterferometer:
     def __init__(self, *, name: str, bus_kwargs: Mapping[str, Any], layout: FrameLayout | None = None,
                  ring_capacity: int = 65536, open_timeout: float = 5.0, open_attempts: int = 5,
                  stall_timeout: float | None = None, reconnect_interval: float = 0.5,
-                 command_timeout: float = 2.0, sync_before_average: bool = True) -> None:
+                 command_timeout: float = 3.0, sync_before_average: bool = True) -> None:
         self.name = name
         self.layout = layout or FrameLayout()
         self._bus_kwargs = dict(bus_kwargs)
