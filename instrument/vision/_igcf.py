@@ -171,16 +171,17 @@ def igcf_band(band, valid, background, saturation, half_window, min_amplitude):
     # the window is symmetric about the run's middle: t = −h…h, or −h+1…h when the middle is at
     # +1/2 — an off-centre window would weigh one flank more, which biases clipped profiles
     t = np.arange(-h_max, h_max + 2)
-    rows = coarse[None, :] + t[:, None]
     use = None  # window pixels that enter the fit; None = all so far (skips mask work)
     if coarse.min() - h_max < 0 or coarse.max() + h_max + 1 >= length:
+        rows = coarse[None, :] + t[:, None]
         use = (rows >= 0) & (rows < length)
-        rows = np.clip(rows, 0, length - 1)
-    flat_index = rows * n + cols[None, :]
+        flat_index = np.clip(rows, 0, length - 1) * n + cols[None, :]
+    else:
+        flat_index = (coarse * n + cols)[None, :] + (t * n)[:, None]
     values = band.ravel().take(flat_index)
-    masks = []
-    shift = half_step.astype(np.intp)
-    masks.append(np.abs(2 * t[:, None] - shift[None, :]) <= (2 * h_sec - shift)[None, :])
+    # keep t in [−h + s, h], s = 1 for a half-pixel middle, else 0
+    tt = t[:, None]
+    masks = [(tt >= (half_step - h_sec)[None, :]) & (tt <= h_sec[None, :])]
     if valid is not None:
         masks.append(valid.ravel().take(flat_index))
     if plateau.any():
@@ -204,9 +205,10 @@ def igcf_band(band, valid, background, saturation, half_window, min_amplitude):
     z0, z1, z2 = (powers[:3] @ weighted_log).astype(float)
     n_used = use.view(np.uint8).sum(axis=0, dtype=np.uint8)
     # Cramer's rule on the 3×3 normal equations; centre = −a1/(2·a2) needs only det1, det2, det
-    det = s0 * (s2 * s4 - s3 * s3) - s1 * (s1 * s4 - s3 * s2) + s2 * (s1 * s3 - s2 * s2)
-    det1 = s0 * (z1 * s4 - s3 * z2) - z0 * (s1 * s4 - s3 * s2) + s2 * (s1 * z2 - z1 * s2)
-    det2 = s0 * (s2 * z2 - z1 * s3) - s1 * (s1 * z2 - z1 * s2) + z0 * (s1 * s3 - s2 * s2)
+    m2, m3, mz = s1 * s4 - s3 * s2, s1 * s3 - s2 * s2, s1 * z2 - z1 * s2  # shared minors
+    det = s0 * (s2 * s4 - s3 * s3) - s1 * m2 + s2 * m3
+    det1 = s0 * (z1 * s4 - s3 * z2) - z0 * m2 + s2 * mz
+    det2 = s0 * (s2 * z2 - z1 * s3) - s1 * mz + z0 * m3
     fittable = (n_used >= 3) & (det > 0) & (det2 < 0)  # det2/det = a2 < 0: a peak, not a dip
     safe_det2 = np.where(fittable, det2, -1.0)
     offset = -det1 / (2.0 * safe_det2)
@@ -223,11 +225,15 @@ def stripe_fwhm(band, background, saturation=None, stride=8):
     """
     sub = band[:, ::stride]
     bg = np.broadcast_to(np.asarray(background, dtype=float), (band.shape[1],))[::stride]
-    peak = sub.max(axis=0).astype(float)
+    peak = sub.max(axis=0)
+    half = 0.5 * (bg + peak)
+    if np.issubdtype(band.dtype, np.integer):  # x ≥ h ⟺ x ≥ ⌈h⌉ for integers: compare natively
+        half = np.ceil(half).astype(band.dtype)
+    counts = (sub >= half[None, :]).sum(axis=0)
     usable = peak > bg
     if saturation is not None:
         usable &= peak < saturation
     if not usable.any():
         return FWHM_PER_SIGMA * 2.0  # nothing to measure: assume σ = 2 px
-    counts = (sub[:, usable] >= (0.5 * (bg + peak))[usable][None, :]).sum(axis=0)
+    counts = counts[usable]
     return _median(counts.astype(float))
