@@ -134,24 +134,26 @@ def _to_coarse(line, factor):
 
 def _refine(small, line, other, level, background, radius):
     """Intensity centroids across ``line`` in each small column/row, then a trimmed line fit."""
-    data = small.T if line.vertical else small  # work as if horizontal: sections are columns
-    rows, cols = data.shape
-    x = np.arange(cols)
-    y0 = np.rint(line.at(x)).astype(int)
+    height, width = small.shape
+    n_sections, across_len = (height, width) if line.vertical else (width, height)
+    x = np.arange(n_sections)
+    position = line.at(x)
     t = np.arange(-radius, radius + 1)
-    r = y0[None, :] + t[:, None]
-    inside = (r >= 0) & (r < rows)
-    values = data[np.clip(r, 0, rows - 1), x[None, :]].astype(float)
-    excess = np.where(inside & (values > level), values - background, 0.0)
+    r = np.rint(position).astype(np.intp)[None, :] + t[:, None]  # (2·radius+1, sections)
+    inside = (r >= 0) & (r < across_len)
+    rc = np.clip(r, 0, across_len - 1)
+    index = x[None, :] * width + rc if line.vertical else rc * width + x[None, :]
+    values = small.ravel().take(index).astype(np.float32)
+    excess = values - np.float32(background)
+    excess[~inside | (values <= level)] = 0.0
     total = excess.sum(axis=0)
     # leave out the crossing: sections the other stripe passes through within the band
-    y_here = line.at(x)
-    other_x = other.at(y_here)  # the other line's coordinate along this one's independent axis
+    other_x = other.at(position)  # the other line's coordinate along this one's independent axis
     keep = (total > 0) & (np.abs(x - other_x) > radius * (1.0 + abs(other.slope)) + radius)
     if keep.sum() < 3:
         return line
     centroid = (excess * r).sum(axis=0)[keep] / total[keep]
-    intercept, slope = _trimmed_line(x[keep].astype(float), centroid)
+    intercept, slope = _trimmed_line(x[keep].astype(float), centroid.astype(float))
     return CoarseLine(line.vertical, intercept, slope, line.votes)
 
 
