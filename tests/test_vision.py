@@ -50,6 +50,8 @@ CASES = {
                    noise=32.0, center=(162.2, 118.9)),
     "12-bit saturated": dict(angle=0.22, dtype=np.uint16, saturation=4095, amplitude=9000.0,
                              background=150.0, noise=32.0, center=(148.4, 126.6)),
+    "10-bit": dict(angle=0.18, dtype=np.uint16, saturation=1023, amplitude=800.0, background=40.0,
+                   noise=8.0, center=(151.9, 129.4)),
     "16-bit": dict(angle=0.07, dtype=np.uint16, saturation=65535, amplitude=40000.0, background=900.0,
                    noise=400.0, center=(166.6, 113.3)),
     "wide stripe": dict(angle=0.1, sigma=3.5, center=(158.0, 121.0)),
