@@ -248,10 +248,12 @@ class CanInterferometer:
     # ------------------------------------------------------------------------------ health
     def stats(self) -> dict[str, Any]:
         """Counters since ``open``: samples, gaps, lost_samples, stalls, protocol_errors,
-        garbage_reads, reconnects, foreign_frames, status_frames; plus connected and the last error."""
+        garbage_reads, reconnects, foreign_frames, status_frames; plus transport, connected and
+        the last errors."""
         with self._stats_lock:
             out: dict[str, Any] = dict(self._stats)
             out["last_protocol_error"] = str(self._protocol_errors[-1]) if self._protocol_errors else None
+        out["transport"] = self._transport
         out["connected"] = self._bus is not None and self._thread is not None
         out["connection_error"] = str(self._connection_error) if self._connection_error else None
         return out
@@ -500,7 +502,9 @@ def _open_with_watchdog(device: str, operation: str, kwargs: Mapping[str, Any], 
         try:
             bus = can.Bus(**kwargs)
         except Exception as exc:
-            result["error"] = exc
+            # Keep only the text: the traceback holds the half-built bus and with it an open socket
+            # or serial port, which would otherwise stay open until the garbage collector runs.
+            result["error"] = f"{type(exc).__name__}: {exc}"
             return
         if abandoned.is_set():
             _shutdown(bus)
@@ -514,8 +518,7 @@ def _open_with_watchdog(device: str, operation: str, kwargs: Mapping[str, Any], 
         abandoned.set()
         raise DeviceTimeout(device, operation, f"opening the {kwargs.get('interface')} bus took more than {timeout} s")
     if "error" in result:
-        exc = result["error"]
-        raise DeviceConnectionError(device, operation, f"{type(exc).__name__}: {exc}") from exc
+        raise DeviceConnectionError(device, operation, result["error"])
     return result["bus"]
 
 
