@@ -18,6 +18,7 @@ Error handling
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from typing import Any, Callable, Mapping
@@ -29,6 +30,12 @@ from pymodbus.pdu import ExceptionResponse
 from drivers._errors import DeviceConnectionError, DeviceError, DeviceTimeout, MotionRefused, ProtocolError
 from drivers.rotary_table._interface import TableFault, TableState
 from drivers.rotary_table._registers import RegisterMap
+
+# pymodbus logs each late or missing reply as a warning of its own; this driver turns the same
+# events into retries or typed errors, so without an application handler they would only reach
+# stderr through logging's last-resort handler. An application that configures logging still
+# sees them.
+logging.getLogger("pymodbus").addHandler(logging.NullHandler())
 
 EXCEPTION_NAMES = {
     1: "illegal function",
