@@ -49,6 +49,7 @@ from drivers.camera._interface import Frame, GrabFailed, Roi
 SATURATION = {"Mono8": 255, "Mono10": 1023, "Mono10p": 1023, "Mono12": 4095, "Mono12p": 4095,
               "Mono12Packed": 4095, "Mono16": 65535}
 _EMULATED_CAMERAS = 3
+_POLL_S = 0.001  # retrieve polling period
 
 
 def _pylon():
@@ -260,8 +261,12 @@ class PylonCamera:
                     break
                 stale.Release()
             if self.trigger_source == "Software":
-                if not camera.WaitForFrameTriggerReady(int(self.timeout_s * 1000), pylon.TimeoutHandling_Return):
-                    raise DeviceTimeout(self._device, "trigger", f"not ready for a trigger within {self.timeout_s:.3g} s")
+                deadline = time.monotonic() + self.timeout_s  # polled, like retrieve()
+                while not camera.WaitForFrameTriggerReady(0, pylon.TimeoutHandling_Return):
+                    if time.monotonic() >= deadline:
+                        raise DeviceTimeout(self._device, "trigger",
+                                            f"not ready for a trigger within {self.timeout_s:.3g} s")
+                    time.sleep(_POLL_S)
                 camera.ExecuteSoftwareTrigger()
         except genicam.GenericException as error:
             raise self._lost_or(GrabFailed, "trigger", error) from None
@@ -271,10 +276,17 @@ class PylonCamera:
         camera = self._require_open("retrieve frame")
         pylon, genicam = _pylon()
         timeout = self.timeout_s if timeout is None else float(timeout)
-        try:
-            result = camera.RetrieveResult(max(1, int(timeout * 1000)), pylon.TimeoutHandling_Return)
-        except genicam.GenericException as error:
-            raise self._lost_or(GrabFailed, "retrieve frame", error) from None
+        # Poll instead of one timed RetrieveResult: under pytest-timeout's SIGALRM timer a timed
+        # wait in the pylon runtime was seen to block past its timeout for good.
+        deadline = time.monotonic() + timeout
+        while True:
+            try:
+                result = camera.RetrieveResult(0, pylon.TimeoutHandling_Return)
+            except genicam.GenericException as error:
+                raise self._lost_or(GrabFailed, "retrieve frame", error) from None
+            if result.IsValid() or time.monotonic() >= deadline:
+                break
+            time.sleep(_POLL_S)
         if not result.IsValid():
             if camera.IsCameraDeviceRemoved():
                 raise DeviceConnectionError(self._device, "retrieve frame", "the camera was removed")

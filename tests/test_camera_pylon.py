@@ -1,0 +1,109 @@
+"""The pylon adapter with real pypylon against three emulated cameras serving the twin's frames."""
+
+import cv2
+import numpy as np
+import pytest
+
+from drivers import DeviceConnectionError, DeviceTimeout
+from drivers.camera import GrabFailed, PylonCamera, Roi, create_triplet
+from sim_devices.camera_twin import CameraFileTwin
+from sim_devices.optics import OpticalBench
+from sim_devices.world import World, WorldConfig
+
+SERIALS = {"x": "0815-0000", "y": "0815-0001", "z": "0815-0002"}
+
+
+@pytest.fixture(scope="module")
+def cell(tmp_path_factory):
+    world = World(WorldConfig(seed=1))
+    bench = OpticalBench(world)
+    twin = CameraFileTwin(world, bench, tmp_path_factory.mktemp("frames"))
+    twin.start()
+    yield world, bench, twin
+    twin.stop()
+
+
+def station_cameras(twin):
+    return {k: {"adapter": "pylon", "serial": s, "emulator_image": str(twin.paths[k])} for k, s in SERIALS.items()}
+
+
+@pytest.fixture
+def triplet(cell):
+    _, _, twin = cell
+    cameras = create_triplet(station_cameras(twin))
+    with cameras:
+        yield cameras
+
+
+def _on_disk(twin, name):
+    return cv2.imread(str(twin.paths[name]), cv2.IMREAD_GRAYSCALE)
+
+
+def test_three_emulated_cameras_deliver_the_rendered_frames(cell, triplet):
+    world, _, twin = cell
+    frames = triplet.grab()
+    assert set(frames) == {"x", "y", "z"}
+    for name, frame in frames.items():
+        assert frame.camera == SERIALS[name] and frame.saturation == 255
+        assert frame.image.shape == (1040, 1024) and frame.image.dtype == np.uint8
+        np.testing.assert_array_equal(frame.image, _on_disk(twin, name))
+        expected = twin.renderer.render(name, world.opr_in_m(), seq=world.state().seq)
+        np.testing.assert_array_equal(frame.image, expected)  # the known pose, pixel for pixel
+    stamps = [f.timestamp for f in frames.values()]
+    assert max(stamps) - min(stamps) < 1.0
+
+
+def test_a_grab_after_a_settled_move_is_never_stale(cell, triplet):
+    world, _, twin = cell
+    previous = triplet.grab()
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        pose = world.flange_pose()
+        pose[:3, 3] += rng.uniform(-0.004, 0.004, 3)
+        state = world.set_flange_pose(pose)
+        frames = triplet.grab()
+        for name, frame in frames.items():
+            expected = twin.renderer.render(name, state.opr_in_m, seq=state.seq)
+            np.testing.assert_array_equal(frame.image, expected, err_msg=f"camera {name} returned a stale frame")
+            assert np.any(frame.image != previous[name].image)
+        previous = frames
+
+
+def test_failed_buffers_are_retried_then_reported(cell, triplet):
+    camera_y = triplet.cameras["y"]
+    camera_y.force_failed_buffers(1)
+    assert set(triplet.grab()) == {"x", "y", "z"}
+    camera_y.force_failed_buffers(10)
+    with pytest.raises(GrabFailed, match="camera y missing: The buffer was incompletely grabbed"):
+        triplet.grab()
+
+
+def test_single_camera_retries_and_configures(cell):
+    _, _, twin = cell
+    camera = PylonCamera(serial=SERIALS["z"], name="z", emulator_image=twin.paths["z"], retries=2, exposure_s=2e-3)
+    with camera:
+        camera.force_failed_buffers(2)
+        frame = camera.grab()
+        assert frame.image.shape == (1040, 1024)
+        camera.configure(roi=Roi(64, 32, 512, 480), gain_db=1.0)
+        assert camera.grab().image.shape == (480, 512)
+
+
+def test_a_frame_that_never_comes_times_out(cell):
+    _, _, twin = cell
+    # Hardware-triggered: nobody fires Line1 on the emulator, so the frame never comes.
+    camera = PylonCamera(serial=SERIALS["x"], emulator_image=twin.paths["x"], trigger_source="Line1", retries=1)
+    with camera:
+        with pytest.raises(DeviceTimeout, match="no frame within"):
+            camera.grab(timeout=0.2)
+
+
+def test_missing_camera_and_closed_camera_are_connection_errors(cell):
+    _, _, twin = cell
+    with pytest.raises(DeviceConnectionError, match="no camera with serial 0815-0099"):
+        PylonCamera(serial="0815-0099", emulator_image=twin.paths["x"]).open()
+    camera = PylonCamera(serial=SERIALS["x"], emulator_image=twin.paths["x"])
+    with pytest.raises(DeviceConnectionError, match="not open"):
+        camera.grab()
+    with pytest.raises(DeviceConnectionError, match="does not exist"):
+        PylonCamera(serial=SERIALS["x"], emulator_image=twin.paths["x"].with_name("nope.bmp")).open()
