@@ -17,7 +17,7 @@ Physics, per screen
    stripe, ``Φ((d + ½)/σ) − Φ((d − ½)/σ)`` (a 1-px box has the same second moment as the
    exact trapezoidal footprint of a square pixel at any angle, so the difference is 4th order).
    Its peak falls off as 1/r with the distance from the emitter and along the fan.
-4. **Sensor**: background with vignetting, multiplicative laser speckle (a smoothed random field
+4. **Sensor**: background with vignetting and read + shot noise, multiplicative laser speckle (a smoothed random field
    with a grain of a few pixels), shot noise (variance ∝ signal), read noise, saturation,
    rounding to 8- or 12-bit grey levels. Noise is seeded per frame.
 
@@ -37,6 +37,7 @@ from scipy.special import ndtr
 from sim_devices.optics import AXIS_NAMES, FANS, OpticalBench
 
 _SQRT_2PI = float(np.sqrt(2.0 * np.pi))
+_POOL_SLACK = 1 << 21  # extra normals in the background-noise pool: the range of window offsets
 
 
 @dataclass(frozen=True)
@@ -105,6 +106,7 @@ class Renderer:
         self.bit_depth = bit_depth
         self.saturation = 255 if bit_depth == 8 else 4095
         self._background: dict[str, np.ndarray] = {}
+        self._noise_pool: np.ndarray | None = None
 
     # ------------------------------------------------------------------ public
     def render(
@@ -126,10 +128,12 @@ class Renderer:
         camera = self.bench.cameras[name]
         width, height = camera.size_px
         rng = np.random.default_rng([self.seed, AXIS_NAMES.index(name), int(seq)])
-        image = self._background_of(name).copy()
         if noise:
             sigma_bg = np.sqrt(cfg.read_noise**2 + cfg.conversion_gain * cfg.background_level)
-            image += np.float32(sigma_bg) * rng.standard_normal((height, width), dtype=np.float32)
+            image = self._background_noise(rng, width, height) * np.float32(sigma_bg)
+            image += self._background_of(name)
+        else:
+            image = self._background_of(name).copy()
         speckle = self._speckle_field(rng, width, height) if noise and cfg.speckle_contrast > 0 else None
         for stripe in stripes_on_screen(self.bench, name, np.asarray(opr_in_m, dtype=float)):
             band = self._stripe_band(name, stripe)
@@ -166,6 +170,19 @@ class Renderer:
             r2 = ((x - (width - 1) / 2) ** 2 + (y - (height - 1) / 2) ** 2) / (((width - 1) / 2) ** 2 + ((height - 1) / 2) ** 2)
             self._background[name] = (cfg.background_level * (1.0 - cfg.vignetting * r2)).astype(np.float32)
         return self._background[name]
+
+    def _background_noise(self, rng: np.random.Generator, width: int, height: int) -> np.ndarray:
+        """Unit normal noise for the whole frame: a window at a random offset into a pool of iid
+        normals drawn once. Drawing 5 M fresh normals per frame would cost ~75 ms; a window
+        costs nothing, and two frames' windows only repeat values at a random pixel shift. The
+        stripe band's noise (what the centre fits see) is drawn fresh for every frame."""
+        size = width * height
+        pool = self._noise_pool
+        if pool is None or pool.size < size + _POOL_SLACK:
+            pool = np.random.default_rng([self.seed, 0x6E6F]).standard_normal(size + _POOL_SLACK, dtype=np.float32)
+            self._noise_pool = pool
+        start = int(rng.integers(0, pool.size - size + 1))
+        return pool[start:start + size].reshape(height, width)
 
     def _speckle_field(self, rng: np.random.Generator, width: int, height: int) -> np.ndarray:
         grain = self.bench.config.speckle_grain_px

@@ -56,7 +56,7 @@ def test_true_optics_differ_from_nominal_by_realistic_amounts(bench):
         assert 0 < abs(ratio - 1) < 3e-3
         # radial distortion of a fraction of a pixel at the corners
         corner = np.array([0.0, 0.0])
-        shift = np.linalg.norm(camera._distort(corner) - corner)
+        shift = np.linalg.norm(np.array(camera._distort(*corner)) - corner)
         assert 0.01 < shift < 1.5
         emitter = bench.emitters[name]
         beam_tilt = np.degrees(np.arccos(emitter.beam[AXIS[name]])) * 3600
