@@ -127,7 +127,7 @@ class Renderer:
         cfg = self.bench.config
         camera = self.bench.cameras[name]
         width, height = camera.size_px
-        rng = np.random.default_rng([self.seed, AXIS_NAMES.index(name), int(seq)])
+        rng = np.random.default_rng([self.seed % 2**63, AXIS_NAMES.index(name), int(seq) % 2**63])
         if noise:
             sigma_bg = np.sqrt(cfg.read_noise**2 + cfg.conversion_gain * cfg.background_level)
             image = self._background_noise(rng, width, height) * np.float32(sigma_bg)
@@ -179,7 +179,7 @@ class Renderer:
         size = width * height
         pool = self._noise_pool
         if pool is None or pool.size < size + _POOL_SLACK:
-            pool = np.random.default_rng([self.seed, 0x6E6F]).standard_normal(size + _POOL_SLACK, dtype=np.float32)
+            pool = np.random.default_rng([self.seed % 2**63, 0x6E6F]).standard_normal(size + _POOL_SLACK, dtype=np.float32)
             self._noise_pool = pool
         start = int(rng.integers(0, pool.size - size + 1))
         return pool[start:start + size].reshape(height, width)
