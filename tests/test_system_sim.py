@@ -1,0 +1,139 @@
+"""System tests: every procedure end to end on the simulated cell, through the real client
+libraries (ur_rtde, pypylon's emulator, pymodbus, python-can), compared with the twins' truth.
+
+One cell serves the whole module; each test runs a procedure with small parameters, except the
+ISO test, which runs the paper's 30 cycles and compares the measured repeatability with the
+repeatability of the true poses the twins attained.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from instrument.compensation import CalibrationRecord
+from procedures._api import open_engine
+from procedures._loading import resolve_procedure_path
+from sim_devices.cell import SimCell
+
+ARCSEC = np.pi / (180 * 3600)
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def cell(tmp_path_factory):
+    directory = tmp_path_factory.mktemp("cell")
+    with SimCell(seed=7, directory=directory, time_scale=4.0) as running:
+        yield running
+
+
+def _procedure(tmp_path: Path, name: str, **overrides) -> Path:
+    data = yaml.safe_load(resolve_procedure_path(name).read_text(encoding="utf-8"))
+    data["parameters"].update(overrides)
+    path = tmp_path / f"{name}.yaml"
+    path.write_text(yaml.safe_dump(data), encoding="utf-8")
+    return path
+
+
+def _run(runs: Path, procedure: Path, station: Path) -> dict:
+    with open_engine(runs, procedure=procedure, station=station) as engine:
+        state = engine.execute()
+        run = engine.store.get_run(engine.run_id)
+        samples = engine.store.samples(engine.run_id)
+    assert state == "FINISHED", run["reason"]
+    assert all(s.ok for s in samples), [s.error for s in samples if not s.ok]
+    return run
+
+
+@pytest.mark.timeout(300)
+def test_displacement_calibration_measures_real_errors_and_fits_them(cell, tmp_path):
+    procedure = _procedure(tmp_path, "displacement_calibration", axes=["x", "z"], step_mm=10.0, repeats=2,
+                           settle_time_s=0.05, interferometer_average_s=0.05, frames_per_pose=1)
+    run = _run(tmp_path / "runs", procedure, cell.station_path)
+    data = run["results"]["data"]
+    for axis in ("x", "z"):
+        rows = data[axis]
+        assert len(rows) == 8 * 2 * 3  # 8 points (0..70 mm), 2 repeats, 3 groups
+        reference = np.array([r["reference"] for r in rows])
+        true = np.array([r["true"] for r in rows])
+        measured = np.array([r["measured"] for r in rows])
+        # The interferometer agrees with the world's true displacement to well under a µm after
+        # removing each group's datum (its reference is the group's nominal start plus the reading).
+        groups = np.array([r["group"] for r in rows])
+        for g in np.unique(groups):
+            offset = np.median((reference - true)[groups == g])
+            assert np.max(np.abs((reference - true)[groups == g] - offset)) < 0.5e-6
+        # Before compensation the instrument is off by tens of µm (nominal ≠ true geometry) ...
+        raw = measured - reference
+        assert 5e-6 < np.max(np.abs(raw - np.median(raw))) < 300e-6
+    # ... and the record's compensation removes that error on the calibration data.
+    record = CalibrationRecord.from_json(Path(run["results"]["record_path"]).read_text(encoding="utf-8"))
+    for axis in ("x", "z"):
+        rows = data[axis]
+        measured = np.array([r["measured"] for r in rows])
+        reference = np.array([r["reference"] for r in rows])
+        corrected = np.array([record.correct(axis, m)[0] for m in measured])
+        raw_spread = np.std(measured - reference)
+        # group offsets stay in the corrected data (each group has its own datum): compare shapes
+        residual = corrected - reference
+        residual -= np.array([np.mean(residual[[r["group"] == r2["group"] for r2 in rows]]) for r in rows])
+        assert np.std(residual) < 0.25 * raw_spread
+        assert np.std(residual) < 3e-6
+
+
+@pytest.mark.timeout(300)
+def test_angle_calibration_uses_the_table_as_reference(cell, tmp_path):
+    procedure = _procedure(tmp_path, "angle_calibration", axes=["y"], step_deg=0.5, repeats=2,
+                           settle_time_s=0.05, frames_per_pose=1, table_speed_deg_s=20.0)
+    run = _run(tmp_path / "runs", procedure, cell.station_path)
+    rows = run["results"]["data"]["b"]
+    assert len(rows) == 5 * 2 * 3
+    reference = np.array([r["reference"] for r in rows])
+    true = np.array([r["true"] for r in rows])
+    measured = np.array([r["measured"] for r in rows])
+    # The table's encoder is within its ±0.5″ class of the true angle.
+    assert np.max(np.abs(reference - true)) < 0.6 * ARCSEC
+    # The raw instrument is off by arc-seconds to tens of arc-seconds over ±1°.
+    assert 1 * ARCSEC < np.max(np.abs(measured - reference)) < 200 * ARCSEC
+    assert Path(run["results"]["record_path"]).is_file()
+    assert cell.control("ping") == "pong"
+    # The OPR went back on the robot at the end of the run.
+    assert cell.control("describe")["world"]  # the cell is still healthy
+
+
+@pytest.mark.timeout(600)
+def test_iso_repeatability_agrees_with_the_twins_truth(cell, tmp_path):
+    """30 cycles over P1..P5: measured RP within the instrument's stated accuracy of the truth."""
+    procedure = _procedure(tmp_path, "iso9283_repeatability", cycles=30, settle_time_s=0.05, frames_per_pose=1,
+                           apply_compensation=False)
+    run = _run(tmp_path / "runs", procedure, cell.station_path)
+    results = run["results"]
+    assert results["order"] == ["P1", "P5", "P4", "P3", "P2"]
+    differences = {"l": [], "a": [], "b": [], "c": []}
+    for point in results["order"]:
+        measured, true = results["points"][point]["stats"], results["points"][point]["true_stats"]
+        assert measured["n"] == true["n"] == 30
+        # The twin's repeatability is ~10 µm and ~0.001° per axis: RP_l ≈ 35 µm, RP_a ≈ 11″.
+        assert 15e-6 < true["rp_l"] < 60e-6
+        differences["l"].append(abs(measured["rp_l"] - true["rp_l"]))
+        for k in "abc":
+            differences[k].append(abs(measured[f"rp_{k}"] - true[f"rp_{k}"]))
+        # The confidence interval brackets the measured value.
+        low, high = measured["rp_l_ci"]
+        assert low <= measured["rp_l"] <= high
+    print(json.dumps({k: np.round(np.array(v) / (1e-6 if k == "l" else ARCSEC), 2).tolist()
+                      for k, v in differences.items()}))
+    # The instrument's stated accuracy (the paper's claim): RP within 1.5 µm and 2″ of the
+    # reference. Per-frame noise is ~1.1 µm and ~1.1″ per component; with n = 30 it moves one
+    # point's RP by ~0.5 µm / ~0.6″ (1σ), so the claim is checked on the RMS over the five points,
+    # and each single point against twice the claim (a gross error, not noise, would break that).
+    rms = {k: float(np.sqrt(np.mean(np.square(v)))) for k, v in differences.items()}
+    assert rms["l"] < 1.5e-6
+    assert max(differences["l"]) < 3.0e-6
+    for k in "abc":
+        assert rms[k] < 2.0 * ARCSEC
+        assert max(differences[k]) < 4.0 * ARCSEC
