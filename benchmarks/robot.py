@@ -7,7 +7,6 @@ Run: ``OMP_NUM_THREADS=1 .venv/bin/python benchmarks/robot.py`` (prints one JSON
 from __future__ import annotations
 
 import json
-import socket
 import sys
 import time
 from pathlib import Path
@@ -19,20 +18,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from drivers.robot import URRobot  # noqa: E402
 from sim_devices import TwinProcess  # noqa: E402
+from sim_devices.cell import free_loopback_host  # noqa: E402
 
 TIME_SCALE = 10.0
 
 
 def free_address() -> str:
-    for n in range(60, 80):
-        host = f"127.0.0.{n}"
-        with socket.socket() as probe:
-            try:
-                probe.bind((host, 30004))
-                return host
-            except OSError:
-                continue
-    raise SystemExit("no free loopback address")
+    return free_loopback_host(first=60, last=79)
 
 
 def percentiles(samples) -> dict[str, float]:

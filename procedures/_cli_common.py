@@ -34,6 +34,15 @@ def open_store(args) -> RunStore:
     return RunStore(path)
 
 
+def find_run(store: RunStore, run_id: str) -> dict | None:
+    """The stored run ``run_id``, or None after saying on stderr why there is none."""
+    try:
+        return store.get_run(run_id)
+    except KeyError as exc:
+        print(exc.args[0], file=sys.stderr)
+        return None
+
+
 def _clock(seconds: float | None) -> str:
     if seconds is None:
         return "--:--"

@@ -5,7 +5,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from procedures._cli_common import add_runs_dir, open_store
+from procedures._cli_common import add_runs_dir, find_run, open_store
 from procedures._report import export_csv, export_json
 
 
@@ -22,10 +22,8 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
     with open_store(args) as store:
-        try:
-            r = store.get_run(args.run_id)
-        except KeyError as exc:
-            print(exc.args[0], file=sys.stderr)
+        r = find_run(store, args.run_id)
+        if r is None:
             return 1
         samples = store.samples(r["id"])
         text = export_csv(samples) if args.csv else export_json(r, samples, store.events(r["id"]))

@@ -2,10 +2,9 @@
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
-from procedures._cli_common import add_runs_dir, open_store
+from procedures._cli_common import add_runs_dir, find_run, open_store
 from procedures._report import render_report
 
 
@@ -19,10 +18,8 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
     with open_store(args) as store:
-        try:
-            r = store.get_run(args.run_id)
-        except KeyError as exc:
-            print(exc.args[0], file=sys.stderr)
+        r = find_run(store, args.run_id)
+        if r is None:
             return 1
         html = render_report(r, store.samples(r["id"]), store.events(r["id"]))
         path = Path(args.output) if args.output else store.run_dir(r["id"]) / "report.html"

@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import json
-import sys
 
 import numpy as np
 
-from procedures._cli_common import add_runs_dir, open_store
+from procedures._cli_common import add_runs_dir, find_run, open_store
 
 
 def register(subparsers) -> None:
@@ -20,10 +19,8 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
     with open_store(args) as store:
-        try:
-            r = store.get_run(args.run_id)
-        except KeyError as exc:
-            print(exc.args[0], file=sys.stderr)
+        r = find_run(store, args.run_id)
+        if r is None:
             return 1
         samples = store.samples(r["id"])
         events = store.events(r["id"])

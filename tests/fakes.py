@@ -118,6 +118,13 @@ class FakeRobot:
         self.stops = 0
         self.connected = False
         self.envelope = MotionEnvelope.from_dict(station_dict()["envelope"])
+        self.tcp = np.zeros(6)
+
+    def set_tcp(self, offset) -> None:
+        self.tcp = np.asarray(offset, dtype=float).copy()
+
+    def tcp_offset(self) -> np.ndarray:
+        return self.tcp.copy()
 
     def connect(self) -> None:
         self.connected = True

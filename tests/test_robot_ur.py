@@ -15,6 +15,7 @@ from scipy import stats
 from drivers._errors import DeviceConnectionError, DeviceTimeout, MotionRefused
 from drivers.robot import EmergencyStop, MotionEnvelope, ProtectiveStop, Robot, URRobot, create
 from sim_devices import TwinProcess
+from sim_devices.cell import free_loopback_host
 from sim_devices._transforms import invert, matrix_to_rotvec, pose6_to_matrix
 
 pytest.importorskip("rtde_control")
@@ -30,17 +31,9 @@ _addresses = itertools.count(30)
 
 
 def free_address() -> str:
-    for n in _addresses:
-        if n > 49:
-            break
-        host = f"127.0.0.{n}"
-        with socket.socket() as probe:
-            try:
-                probe.bind((host, 30004))
-                return host
-            except OSError:
-                continue
-    pytest.skip("no free loopback address for a UR twin")
+    """A loopback address (127.0.0.30-49) not used before in this module whose UR ports are free:
+    a client of an earlier test may still be reconnecting to the addresses it used."""
+    return free_loopback_host(first=next(_addresses), last=49)
 
 
 @pytest.fixture(scope="module")

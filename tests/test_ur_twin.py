@@ -5,13 +5,13 @@ collide with each other or with a cell on 127.0.0.2.
 """
 
 import itertools
-import socket
 import time
 
 import numpy as np
 import pytest
 
 from sim_devices import TwinProcess
+from sim_devices.cell import free_loopback_host
 from sim_devices._transforms import pose6_to_matrix
 from sim_devices.ur import _kinematics as kin
 from sim_devices.ur._motion import Profile
@@ -25,18 +25,9 @@ _addresses = itertools.count(10)
 
 
 def free_address() -> str:
-    """Next 127.0.0.N (N in 10..29) whose RTDE port is free."""
-    for n in _addresses:
-        if n > 29:
-            break
-        host = f"127.0.0.{n}"
-        with socket.socket() as probe:
-            try:
-                probe.bind((host, 30004))
-                return host
-            except OSError:
-                continue
-    pytest.skip("no free loopback address for a UR twin")
+    """A loopback address (127.0.0.10-29) not used before in this module whose UR ports are free:
+    a client of an earlier test may still be reconnecting to the addresses it used."""
+    return free_loopback_host(first=next(_addresses), last=29)
 
 
 def start_twin(**kwargs) -> TwinProcess:
