@@ -7,9 +7,14 @@
   resampled with replacement (barycentre recomputed in each resample); each resample's RP_l is
   standardised by its delta-method standard error
   se² = (S² + 9·(m4 − S⁴)/(4·S²) + 3·m3/S) / n  (m3, m4: central moments of the l_j),
-  and the interval is RP_l − t*_{hi}·se … RP_l − t*_{lo}·se. For n = 30 Gaussian scatter its
-  coverage of the population value μ_l + 3·σ_l is ≈ 0.92 at a nominal 0.95 (the plain percentile
-  bootstrap reaches only ≈ 0.80: it inherits the estimator's downward bias).
+  and the interval is RP_l − t*_{hi}·se … RP_l − t*_{lo}·se. A resample drawn with many
+  duplicates has a standard error far below the sample's, and dividing by it puts the long tail
+  of t* into the interval (upper bounds at 2.7× RP_l were seen); so each resample's standard
+  error is floored at ``SE_FLOOR`` × the sample's. For n = 30 Gaussian scatter (600 seeded
+  trials) the coverage of the population value μ_l + 3·σ_l is 0.93 at a nominal 0.95 (0.94
+  without the floor), and the 95th percentile of the interval's width is 0.58·RP_l (0.83 without
+  it). The plain percentile bootstrap reaches only ≈ 0.80 (it inherits the estimator's downward
+  bias); a delta-method normal interval or BCa ≈ 0.87.
 - AP_P (the distance of the barycentre from the commanded point): a percentile bootstrap; good
   when AP_P is several times the barycentre's own scatter (S/√n), conservative-to-biased near 0.
 
@@ -22,6 +27,8 @@ import numpy as np
 from scipy import stats
 
 from instrument.iso9283._errors import ISO9283Error
+
+SE_FLOOR = 0.7  # smallest resample standard error, as a fraction of the sample's (see above)
 
 
 def check_confidence(confidence: float, n: int) -> float:
@@ -88,6 +95,6 @@ def rp_l_interval(positions: np.ndarray, confidence: float, samples: int, seed: 
     if standard_error == 0.0:  # all poses identical (or symmetric to rounding): nothing to resample
         return (estimate, estimate)
     boot, boot_se = rp_l_with_standard_error(bootstrap_resamples(positions, samples, seed))
-    usable = boot_se > 0.0
-    t_low, t_high = percentile_interval((boot[usable] - estimate) / boot_se[usable], confidence)
+    t_low, t_high = percentile_interval((boot - estimate) / np.maximum(boot_se, SE_FLOOR * standard_error),
+                                        confidence)
     return (max(estimate - t_high * standard_error, 0.0), estimate - t_low * standard_error)
