@@ -1,0 +1,108 @@
+"""The whole simulated cell: up and down repeatedly without leaks, `instrument sim` in the
+foreground with a clean stop on SIGTERM, and `instrument run --station sim`."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import psutil
+import pytest
+import yaml
+
+from procedures.cli import main
+from sim_devices.cell import UR_PORTS, SimCell
+from sim_devices.control import ControlClient
+
+pytestmark = pytest.mark.slow
+
+
+def _listening(host: str, port: int) -> bool:
+    with socket.socket() as probe:
+        probe.settimeout(1.0)
+        return probe.connect_ex((host, port)) == 0
+
+
+def _endpoints_in_use(endpoints: dict) -> list[tuple[str, int]]:
+    robot = endpoints["robot"]
+    return ([(robot["host"], port) for port in UR_PORTS]
+            + [("127.0.0.1", endpoints["rotary_table"]["modbus_tcp_port"]),
+               ("127.0.0.1", endpoints["interferometer"]["socketcand"]["port"]),
+               (endpoints["control"]["host"], endpoints["control"]["port"])])
+
+
+def test_cell_up_and_down_three_times_leaks_nothing(tmp_path):
+    me = psutil.Process()
+    fds_before = me.num_fds()
+    children_before = {p.pid for p in me.children(recursive=True)}
+    for seed in range(3):
+        with SimCell(seed=seed, directory=tmp_path / f"cell{seed}") as cell:
+            station = yaml.safe_load(cell.station_path.read_text())
+            assert station["simulation"]["seed"] == seed
+            assert cell.control("ping") == "pong"
+            assert cell.client().call("ping") == "pong"  # the same API over loopback TCP
+            used = _endpoints_in_use(cell.endpoints)
+            assert all(_listening(host, port) for host, port in used)
+            ptys = [cell.endpoints["rotary_table"]["modbus_rtu_port"], cell.endpoints["rotary_table"]["gcs_port"],
+                    cell.endpoints["interferometer"]["slcan"]["port"]]
+            assert all(Path(p).exists() for p in ptys)
+            assert all(host.startswith("127.") for host, _ in used)
+        assert not [hp for hp in used if _listening(*hp)], "a port stayed open after the cell stopped"
+        assert not [p for p in ptys if Path(p).is_symlink() and Path(p).exists()], "a pty link outlived the cell"
+    leftover = [p for p in me.children(recursive=True) if p.pid not in children_before and p.is_running()
+                and p.status() != psutil.STATUS_ZOMBIE]
+    # multiprocessing's resource tracker starts with the first spawn child and serves this process
+    # for its lifetime (one, however many cells); anything else is a leak.
+    leaked = [p.cmdline() for p in leftover if "multiprocessing.resource_tracker" not in " ".join(p.cmdline())]
+    assert not leaked
+    assert me.num_fds() <= fds_before + 3
+
+
+def test_instrument_sim_runs_in_the_foreground_and_stops_on_sigterm(tmp_path):
+    process = subprocess.Popen(
+        [sys.executable, "-m", "procedures.cli", "sim", "--json", "--seed", "4", "--directory", str(tmp_path)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=Path(__file__).resolve().parents[1],
+    )
+    try:
+        first_line: list[str] = []
+        reader = threading.Thread(target=lambda: first_line.append(process.stdout.readline()), daemon=True)
+        reader.start()
+        reader.join(90)
+        assert first_line and first_line[0].strip(), f"no endpoints printed; stderr: {process.stderr.read()}"
+        endpoints = json.loads(first_line[0])
+        assert Path(endpoints["station"]).is_file()
+        control = endpoints["control"]
+        assert ControlClient(control["host"], control["port"], timeout=10).call("ping") == "pong"
+        used = _endpoints_in_use(endpoints)
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(timeout=60) == 0
+        assert not [hp for hp in used if _listening(*hp)]
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait(10)
+        process.stdout.close()
+        process.stderr.close()
+
+
+def test_run_with_station_sim_starts_its_own_cell(tmp_path, capsys):
+    procedure = tmp_path / "iso.yaml"
+    procedure.write_text(yaml.safe_dump({
+        "procedure": "iso9283_repeatability", "name": "smoke",
+        "parameters": {"cycles": 2, "transform_step": False, "apply_compensation": False,
+                       "settle_time_s": 0.05, "frames_per_pose": 1},
+    }), encoding="utf-8")
+    runs = tmp_path / "runs"
+    assert main(["run", str(procedure), "--station", "sim", "--seed", "2", "--runs-dir", str(runs), "--quiet"]) == 0
+    run_id, state = capsys.readouterr().out.split()[-2:]
+    assert state == "FINISHED"
+    assert main(["export", run_id, "--json", "--runs-dir", str(runs)]) == 0
+    exported = json.loads(capsys.readouterr().out)
+    assert len(exported["samples"]) == 10 and all(s["ok"] for s in exported["samples"])
+    assert os.listdir(runs / "sim")  # the cell's directory (frames, truth log) is kept for the report
