@@ -72,7 +72,10 @@ def _iso_section(results: dict) -> str:
             cells = "".join(f"<td class=true>{_fmt(true.get(k), s, d)}</td>" for k, _, s, d in ISO_COLUMNS)
             rows.append(f"<tr><td class='l true'>{escape(label)} (true)</td><td class=true>{true.get('n', '')}</td>{cells}</tr>")
     note = ("<p>Rows marked <span class=true>(true)</span> are computed from the simulated cell's ground-truth "
-            "log at the same instants.</p>") if has_truth else ""
+            "log at the same instants. Their RP columns compare like for like with the measured rows. Their AP "
+            "columns do not: they put the true tool point, which carries the OPR and tool mounting errors the "
+            "simulated cell hides from the instrument, against the commanded poses of the measured transform "
+            "step.</p>") if has_truth else ""
     transform = results.get("transform", {})
     transform_text = (f"<p>End-effector transform step: robot↔M rigid fit over {transform.get('points')} poses, "
                       f"residual RMS {_fmt(transform.get('residual_rms'), 1e6)} µm.</p>") if transform.get("fitted") else \
