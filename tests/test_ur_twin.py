@@ -235,3 +235,36 @@ def test_protective_stop_makes_send_command_fail(twin, clients):
     assert control.reuploadScript()
     wait_for(control.isProgramRunning)
     assert control.moveL(start.tolist(), 0.25, 1.2)
+
+
+def test_stream_timestamp_advances_while_the_control_thread_is_busy():
+    """A real controller keeps streaming its clock; the twin's control thread can be busy for a
+    while (publishing a settled pose makes the cell render three frames), and a frozen timestamp
+    would make the driver declare the connection lost."""
+    import threading
+
+    from sim_devices.faults import FaultPlan
+    from sim_devices.ur._config import URTwinConfig
+    from sim_devices.ur._controller import URController
+    from sim_devices.ur._servers import InputOwnership, RTDEHandler
+    from sim_devices.world import World, WorldConfig
+
+    controller = URController(World(WorldConfig(seed=0)), URTwinConfig(time_scale=1.0), FaultPlan())
+    timestamp = RTDEHandler(controller, InputOwnership())._getter("timestamp")
+    busy, release = threading.Event(), threading.Event()
+
+    def hold_the_controller():
+        with controller.lock:
+            busy.set()
+            release.wait(5.0)
+
+    holder = threading.Thread(target=hold_the_controller)
+    holder.start()
+    try:
+        assert busy.wait(5.0)
+        first = timestamp(controller.snapshot)
+        time.sleep(0.05)
+        assert timestamp(controller.snapshot) >= first + 0.04
+    finally:
+        release.set()
+        holder.join(5.0)

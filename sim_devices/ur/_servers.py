@@ -200,6 +200,10 @@ class RTDEHandler:
 
     def _getter(self, name: str):
         c = self.c
+        if name == "timestamp":
+            # The controller's clock runs on while the stream is served, even when the control
+            # thread is busy (e.g. publishing a settled pose to the world, which renders frames).
+            return lambda s: c.sim_time()
         if name.startswith("output_int_register_"):
             index = int(name.rsplit("_", 1)[1])
             return lambda s: c.out_int[index]
