@@ -41,8 +41,10 @@ def test_cell_up_and_down_three_times_leaks_nothing(tmp_path):
     me = psutil.Process()
     fds_before = me.num_fds()
     children_before = {p.pid for p in me.children(recursive=True)}
+    example = yaml.safe_load((Path(__file__).resolve().parents[1] / "sim_devices" / "cell.example.yaml").read_text())
     for seed in range(3):
-        with SimCell(seed=seed, directory=tmp_path / f"cell{seed}") as cell:
+        config = {k: v for k, v in example.items() if k not in ("seed", "time_scale")} if seed == 2 else None
+        with SimCell(seed=seed, directory=tmp_path / f"cell{seed}", config=config) as cell:
             station = yaml.safe_load(cell.station_path.read_text())
             assert station["simulation"]["seed"] == seed
             assert cell.control("ping") == "pong"
