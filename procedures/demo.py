@@ -91,10 +91,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--cycles", type=int, default=30, help="ISO cycles (paper: 30)")
     parser.add_argument("--quick", action="store_true", help="coarser calibration grids (a smoke run)")
-    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars (the default when stderr is not a terminal)")
     parser.add_argument("--time-scale", type=float, default=4.0,
                         help="simulated seconds per wall second for robot and table motion (default 4)")
     args = parser.parse_args(argv)
+    args.quiet = args.quiet or not sys.stderr.isatty()  # a progress bar only makes sense on a terminal
 
     from sim_devices.cell import SimCell
 
