@@ -268,3 +268,23 @@ def test_stream_timestamp_advances_while_the_control_thread_is_busy():
     finally:
         release.set()
         holder.join(5.0)
+
+
+def test_dashboard_answers_like_polyscope():
+    from sim_devices.faults import FaultPlan
+    from sim_devices.ur._config import URTwinConfig
+    from sim_devices.ur._controller import URController
+    from sim_devices.ur._servers import DashboardHandler
+    from sim_devices.world import World, WorldConfig
+
+    dashboard = DashboardHandler(URController(World(WorldConfig(seed=0)), URTwinConfig(), FaultPlan()))
+    expected = {
+        "close safety popup": "closing safety popup", "restart safety": "Restarting safety",
+        "power on": "Powering on", "power off": "Powering off", "brake release": "Brake releasing",
+        "get loaded program": "No program loaded", "isProgramSaved": "false <unnamed>",
+        "close popup": "closing popup", "load /programs/x.urp": "File not found: /programs/x.urp",
+        "popup hello": "showing popup", "addToLog note": "Added log message",
+    }
+    for command, reply in expected.items():
+        assert dashboard.answer(command) == (reply, False), command
+    assert dashboard.answer("quit") == ("Disconnected", True)

@@ -117,6 +117,19 @@ def _recv_exact(sock: socket.socket, count: int, running: threading.Event) -> by
 
 
 # --------------------------------------------------------------------------------------- RTDE
+# Dashboard commands the twin acknowledges without changing its state, with PolyScope's replies.
+DASHBOARD_FIXED_REPLIES = {
+    "close safety popup": "closing safety popup",
+    "restart safety": "Restarting safety",
+    "power on": "Powering on",
+    "power off": "Powering off",
+    "brake release": "Brake releasing",
+    "get loaded program": "No program loaded",
+    "isprogramsaved": "false <unnamed>",
+    "close popup": "closing popup",
+}
+
+
 class RTDEHandler:
     """One RTDE session: version handshake, recipes, start/pause, streaming, input packages."""
 
@@ -318,26 +331,12 @@ class DashboardHandler:
                 c.clear_safety()
                 return "Protective stop releasing", False
             return "Cannot unlock protective stop until 5s after occurrence. Always inspect cause of protective stop before unlocking", False
-        if lower == "close safety popup":
-            return "closing safety popup", False
-        if lower == "restart safety":
-            return "Restarting safety", False
-        if lower == "power on":
-            return "Powering on", False
-        if lower == "power off":
-            return "Powering off", False
-        if lower == "brake release":
-            return "Brake releasing", False
-        if lower == "get loaded program":
-            return "No program loaded", False
-        if lower == "isprogramsaved":
-            return "false <unnamed>", False
+        if lower in DASHBOARD_FIXED_REPLIES:
+            return DASHBOARD_FIXED_REPLIES[lower], False
         if lower.startswith("load "):
             return f"File not found: {command[5:]}", False
         if lower.startswith("popup "):
             return "showing popup", False
-        if lower == "close popup":
-            return "closing popup", False
         if lower.startswith("addtolog "):
             return "Added log message", False
         if lower == "quit":
