@@ -34,6 +34,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from drivers._config import checked_fields
 from sim_devices._transforms import rotvec_to_matrix
 
 AXIS_NAMES = ("x", "y", "z")
@@ -110,14 +111,10 @@ class OpticsConfig:
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any] | None) -> "OpticsConfig":
-        data = dict(data or {})
-        known = {f for f in cls.__dataclass_fields__}
-        unknown = set(data) - known
-        if unknown:
-            raise ValueError(f"optics config: unknown field(s) {sorted(unknown)}; expected some of {sorted(known)}")
+        data = checked_fields(cls, data, "optics config")
         if "cameras" in data:
             data["cameras"] = {
-                k: v if isinstance(v, CameraMount) else CameraMount(**dict(v)) for k, v in dict(data["cameras"]).items()
+                k: v if isinstance(v, CameraMount) else CameraMount(**checked_fields(CameraMount, v, f"optics config cameras.{k}")) for k, v in dict(data["cameras"]).items()
             }
             missing = set(AXIS_NAMES) - set(data["cameras"])
             if missing:

@@ -30,6 +30,7 @@ from typing import Any, Callable, Literal, Mapping
 
 import numpy as np
 
+from drivers._config import checked_fields
 from sim_devices._transforms import (
     invert,
     make_transform,
@@ -67,12 +68,9 @@ class WorldConfig:
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any] | None) -> "WorldConfig":
-        data = dict(data or {})
-        kin = KinematicsConfig(**dict(data.pop("kinematics", {}) or {}))
-        unknown = set(data) - {"seed"}
-        if unknown:
-            raise ValueError(f"world config: unknown field(s) {sorted(unknown)}; expected 'seed', 'kinematics'")
-        return cls(seed=int(data.get("seed", 0)), kinematics=kin)
+        data = checked_fields(cls, data, "world config")
+        kinematics = KinematicsConfig(**checked_fields(KinematicsConfig, data.get("kinematics"), "world config kinematics"))
+        return cls(seed=int(data.get("seed", 0)), kinematics=kinematics)
 
 
 @dataclass(frozen=True)

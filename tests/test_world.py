@@ -84,6 +84,8 @@ def test_subscribers_see_every_settled_pose_and_truth_is_logged(tmp_path):
 def test_bad_config_names_the_field():
     with pytest.raises(ValueError, match="unknown field"):
         WorldConfig.from_dict({"seed": 1, "kinematic": {}})
+    with pytest.raises(ValueError, match=r"world config kinematics: unknown field\(s\) \['opr_mount_std'\]"):
+        WorldConfig.from_dict({"kinematics": {"opr_mount_std": 1e-3}})
     with pytest.raises(ValueError, match="table axis"):
         World().mount_on_table("w")
 

@@ -39,9 +39,10 @@ Command (host → head, ``command_id``, default 0x601) and reply (``reply_id``, 
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from typing import Any, Mapping
 
+from drivers._config import checked_fields
 from drivers._errors import ProtocolError
 
 OPCODE_DATUM = 0x01
@@ -89,11 +90,7 @@ class FrameLayout:
     @classmethod
     def from_dict(cls, data: Mapping[str, Any] | None) -> "FrameLayout":
         """Accepts ids as ints or hex strings (``"0x181"``)."""
-        data = dict(data or {})
-        known = {f.name for f in fields(cls)}
-        unknown = set(data) - known
-        if unknown:
-            raise ValueError(f"frame layout: unknown field(s) {sorted(unknown)}; expected {sorted(known)}")
+        data = checked_fields(cls, data, "frame layout")
         for key in ("displacement_id", "status_id", "command_id", "reply_id"):
             if isinstance(data.get(key), str):
                 data[key] = int(data[key], 0)

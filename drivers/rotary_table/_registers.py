@@ -15,6 +15,8 @@ import math
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any, Literal, Mapping
 
+from drivers._config import checked_fields
+
 
 @dataclass(frozen=True)
 class StatusBits:
@@ -133,19 +135,11 @@ class RegisterMap:
         """Build from a mapping (station YAML); unknown keys are an error, nested groups may be partial."""
         if isinstance(data, RegisterMap):
             return data
-        data = dict(data or {})
-        known = {f.name for f in fields(cls)}
-        unknown = set(data) - known
-        if unknown:
-            raise ValueError(f"register map: unknown field(s) {sorted(unknown)}; known: {sorted(known)}")
+        data = checked_fields(cls, data, "register map")
         nested = {"status_bits": StatusBits, "alarm_bits": AlarmBits, "opcodes": Opcodes}
         for key, kind in nested.items():
             if key in data and not isinstance(data[key], kind):
-                sub = dict(data[key])
-                sub_known = {f.name for f in fields(kind)}
-                if set(sub) - sub_known:
-                    raise ValueError(f"register map {key}: unknown field(s) {sorted(set(sub) - sub_known)}")
-                data[key] = kind(**sub)
+                data[key] = kind(**checked_fields(kind, data[key], f"register map {key}"))
         result = cls(**data)
         if result.word_order not in ("big", "little"):
             raise ValueError(f"register map word_order must be 'big' or 'little', got {result.word_order!r}")

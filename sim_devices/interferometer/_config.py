@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import Any, Mapping
 
+from drivers._config import checked_fields
 from drivers.interferometer._layout import FrameLayout
 
 
@@ -55,9 +56,4 @@ class InterferometerTwinConfig:
     def from_dict(cls, data: Mapping[str, Any] | "InterferometerTwinConfig" | None) -> "InterferometerTwinConfig":
         if isinstance(data, cls):
             return data
-        data = dict(data or {})
-        known = {f.name for f in fields(cls)}
-        unknown = set(data) - known
-        if unknown:
-            raise ValueError(f"interferometer twin config: unknown field(s) {sorted(unknown)}; expected {sorted(known)}")
-        return cls(**data)
+        return cls(**checked_fields(cls, data, "interferometer twin config"))

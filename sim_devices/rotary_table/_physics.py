@@ -20,10 +20,12 @@ from __future__ import annotations
 import math
 import threading
 import time
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from typing import Any, Callable, Mapping
 
 import numpy as np
+
+from drivers._config import checked_fields
 
 ARCSEC = math.pi / (180.0 * 3600.0)
 
@@ -68,11 +70,7 @@ class TableConfig:
     def from_dict(cls, data: Mapping[str, Any] | "TableConfig" | None) -> "TableConfig":
         if isinstance(data, TableConfig):
             return data
-        data = dict(data or {})
-        known = {f.name for f in fields(cls)}
-        if set(data) - known:
-            raise ValueError(f"table config: unknown field(s) {sorted(set(data) - known)}; known: {sorted(known)}")
-        return cls(**data)
+        return cls(**checked_fields(cls, data, "table config"))
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)

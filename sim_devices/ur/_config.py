@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 from typing import Any, Mapping
 
 import numpy as np
+
+from drivers._config import checked_fields
 
 
 @dataclass
@@ -64,11 +66,7 @@ class URTwinConfig:
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any] | None) -> "URTwinConfig":
-        data = dict(data or {})
-        known = {f.name for f in fields(cls)}
-        unknown = set(data) - known
-        if unknown:
-            raise ValueError(f"UR twin config: unknown field(s) {sorted(unknown)}; expected some of {sorted(known)}")
+        data = checked_fields(cls, data, "UR twin config")
         if "version" in data:
             data["version"] = tuple(int(v) for v in data["version"])
         if "tcp_offset" in data:
