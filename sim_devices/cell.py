@@ -80,6 +80,7 @@ class CellHost:
         self.time_scale = float(time_scale)
         self.config = dict(config or {})
         self.world: World | None = None
+        self.bench: Any = None
         self._twins: dict[str, Any] = {}
         self._control: ControlServer | None = None
         self.endpoints: dict[str, Any] = {}
@@ -118,19 +119,26 @@ class CellHost:
 
     def _add(self, name: str, twin: Any) -> None:
         self._twins[name] = twin
-        started = twin.start() if hasattr(twin, "start") else None
-        self.endpoints[name] = started or {}
+        self.endpoints[name] = twin.start()
 
     def stop(self) -> None:
+        """Stop everything started, even when one part fails to stop; then report the failures."""
+        problems = []
         if self._control is not None:
-            self._control.stop()
-            self._control = None
+            control, self._control = self._control, None
+            try:
+                control.stop()
+            except Exception as exc:
+                problems.append(f"control channel: {type(exc).__name__}: {exc}")
         for name in reversed(list(self._twins)):
-            twin = self._twins.pop(name)
-            if hasattr(twin, "stop"):
-                twin.stop()
+            try:
+                self._twins.pop(name).stop()
+            except Exception as exc:
+                problems.append(f"{name}: {type(exc).__name__}: {exc}")
         if self.world is not None:
             self.world.truth.close()
+        if problems:
+            raise RuntimeError("simulated cell: stopping failed for " + "; ".join(problems))
 
     # ------------------------------------------------------------------------------ control API
     def control(self, command: str, **args: Any) -> Any:

@@ -108,3 +108,25 @@ def test_run_with_station_sim_starts_its_own_cell(tmp_path, capsys):
     exported = json.loads(capsys.readouterr().out)
     assert len(exported["samples"]) == 10 and all(s["ok"] for s in exported["samples"])
     assert os.listdir(runs / "sim")  # the cell's directory (frames, truth log) is kept for the report
+
+
+def test_stop_stops_every_twin_even_when_one_fails(tmp_path):
+    from sim_devices.cell import CellHost
+
+    stopped = []
+
+    class Twin:
+        def __init__(self, name, fail=False):
+            self.name, self.fail = name, fail
+
+        def stop(self):
+            stopped.append(self.name)
+            if self.fail:
+                raise OSError("port busy")
+
+    host = CellHost(str(tmp_path))
+    host._twins = {"cameras": Twin("cameras"), "robot": Twin("robot", fail=True), "table": Twin("table")}
+    with pytest.raises(RuntimeError, match="stopping failed for robot: OSError: port busy"):
+        host.stop()
+    assert stopped == ["table", "robot", "cameras"]  # reverse start order, none skipped
+    assert not host._twins
