@@ -37,16 +37,19 @@ def run(args) -> int:
         if not isinstance(config, dict):
             print(f"instrument sim: {args.config}: expected a mapping at the top level", file=sys.stderr)
             return 2
-    seed = args.seed if args.seed is not None else int(config.pop("seed", 0))
-    time_scale = args.time_scale if args.time_scale is not None else float(config.pop("time_scale", 1.0))
-    config.pop("seed", None)
-    config.pop("time_scale", None)
+    file_seed, file_time_scale = config.pop("seed", 0), config.pop("time_scale", 1.0)
+    seed = args.seed if args.seed is not None else int(file_seed)
+    time_scale = args.time_scale if args.time_scale is not None else float(file_time_scale)
     host = CellHost(str(args.directory), seed=seed, robot_host=args.robot_host, time_scale=time_scale, config=config)
 
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set()) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
-        endpoints = host.start()
+        try:
+            endpoints = host.start()
+        except ValueError as exc:  # a bad setting in the cell configuration
+            print(f"instrument sim: {args.config or 'configuration'}: {exc}", file=sys.stderr)
+            return 2
         if args.json:
             print(json.dumps(endpoints), flush=True)
         else:

@@ -130,3 +130,11 @@ def test_stop_stops_every_twin_even_when_one_fails(tmp_path):
         host.stop()
     assert stopped == ["table", "robot", "cameras"]  # reverse start order, none skipped
     assert not host._twins
+
+
+def test_instrument_sim_reports_a_bad_cell_config_in_one_line(tmp_path, capsys):
+    config = tmp_path / "cell.yaml"
+    config.write_text("robot:\n  repeatability_std: 1.0e-5\n", encoding="utf-8")
+    assert main(["sim", "--config", str(config), "--directory", str(tmp_path / "cell")]) == 2
+    err = capsys.readouterr().err
+    assert "UR twin config: unknown field(s) ['repeatability_std']" in err and "Traceback" not in err
