@@ -55,33 +55,26 @@ def test_displacement_calibration_measures_real_errors_and_fits_them(cell, tmp_p
                            settle_time_s=0.05, interferometer_average_s=0.05, frames_per_pose=1)
     run = _run(tmp_path / "runs", procedure, cell.station_path)
     data = run["results"]["data"]
+    record = CalibrationRecord.from_json(Path(run["results"]["record_path"]).read_text(encoding="utf-8"))
     for axis in ("x", "z"):
         rows = data[axis]
         assert len(rows) == 8 * 2 * 3  # 8 points (0..70 mm), 2 repeats, 3 groups
-        reference = np.array([r["reference"] for r in rows])
-        true = np.array([r["true"] for r in rows])
-        measured = np.array([r["measured"] for r in rows])
+        reference, true, measured, groups = (np.array([r[key] for r in rows])
+                                             for key in ("reference", "true", "measured", "group"))
         # The interferometer agrees with the world's true displacement to well under a µm after
         # removing each group's datum (its reference is the group's nominal start plus the reading).
-        groups = np.array([r["group"] for r in rows])
         for g in np.unique(groups):
             offset = np.median((reference - true)[groups == g])
             assert np.max(np.abs((reference - true)[groups == g] - offset)) < 0.5e-6
         # Before compensation the instrument is off by tens of µm (nominal ≠ true geometry) ...
         raw = measured - reference
         assert 5e-6 < np.max(np.abs(raw - np.median(raw))) < 300e-6
-    # ... and the record's compensation removes that error on the calibration data.
-    record = CalibrationRecord.from_json(Path(run["results"]["record_path"]).read_text(encoding="utf-8"))
-    for axis in ("x", "z"):
-        rows = data[axis]
-        measured = np.array([r["measured"] for r in rows])
-        reference = np.array([r["reference"] for r in rows])
-        corrected = np.array([record.correct(axis, m)[0] for m in measured])
-        raw_spread = np.std(measured - reference)
-        # group offsets stay in the corrected data (each group has its own datum): compare shapes
-        residual = corrected - reference
-        residual -= np.array([np.mean(residual[[r["group"] == r2["group"] for r2 in rows]]) for r in rows])
-        assert np.std(residual) < 0.25 * raw_spread
+        # ... and the record's compensation removes that error on the calibration data. Each group
+        # keeps its own datum offset in the corrected data, so compare the shapes within groups.
+        residual = np.array([record.correct(axis, m)[0] for m in measured]) - reference
+        for g in np.unique(groups):
+            residual[groups == g] -= residual[groups == g].mean()
+        assert np.std(residual) < 0.25 * np.std(raw)
         assert np.std(residual) < 3e-6
 
 
