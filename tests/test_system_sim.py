@@ -59,8 +59,8 @@ def test_displacement_calibration_measures_real_errors_and_fits_them(cell, tmp_p
     for axis in ("x", "z"):
         rows = data[axis]
         assert len(rows) == 8 * 2 * 3  # 8 points (0..70 mm), 2 repeats, 3 groups
-        reference, true, measured, groups = (np.array([r[key] for r in rows])
-                                             for key in ("reference", "true", "measured", "group"))
+        reference, true, measured, groups, points = (np.array([r[key] for r in rows])
+                                                     for key in ("reference", "true", "measured", "group", "point"))
         # The interferometer agrees with the world's true displacement to well under a µm after
         # removing each group's datum (its reference is the group's nominal start plus the reading).
         for g in np.unique(groups):
@@ -69,12 +69,19 @@ def test_displacement_calibration_measures_real_errors_and_fits_them(cell, tmp_p
         # Before compensation the instrument is off by tens of µm (nominal ≠ true geometry) ...
         raw = measured - reference
         assert 5e-6 < np.max(np.abs(raw - np.median(raw))) < 300e-6
-        # ... and the record's compensation removes that error on the calibration data. Each group
-        # keeps its own datum offset in the corrected data, so compare the shapes within groups.
+        # ... and the record's compensation removes that error on the calibration data, down to the
+        # noise floor: the scatter of repeats at one point (per-frame speckle noise, ~1-2 µm), which
+        # no compensation can remove. Each group keeps its own datum offset in the corrected data,
+        # so compare the shapes within groups.
         residual = np.array([record.correct(axis, m)[0] for m in measured]) - reference
         for g in np.unique(groups):
             residual[groups == g] -= residual[groups == g].mean()
-        assert np.std(residual) < 0.25 * np.std(raw)
+        cells = [raw[(groups == g) & (points == k)] for g in np.unique(groups) for k in np.unique(points)]
+        floor = np.sqrt(np.mean([np.var(c, ddof=1) for c in cells]))
+        print(f"{axis}: raw std {np.std(raw) * 1e6:.2f} µm, residual {np.std(residual) * 1e6:.2f} µm, "
+              f"repeat floor {floor * 1e6:.2f} µm")
+        assert np.std(residual) < 1.75 * floor  # the floor from 24 two-repeat cells is known to ±14 %
+        assert np.std(residual) < 0.5 * np.std(raw)
         assert np.std(residual) < 3e-6
 
 
