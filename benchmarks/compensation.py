@@ -20,9 +20,9 @@ from pathlib import Path
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-from instrument.compensation import (  # noqa: E402
+from instrument.compensation import (
     COMPONENTS,
     CsfPpsoEsnCompensator,
     SmoothingSplineCompensator,

@@ -24,9 +24,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from drivers import DeviceError  # noqa: E402
-from drivers.interferometer import create  # noqa: E402
-from sim_devices import TwinProcess  # noqa: E402
+from drivers import DeviceError
+from drivers.interferometer import create
+from sim_devices import TwinProcess
 
 
 class Collector(threading.Thread):

@@ -17,11 +17,27 @@ import time
 import numpy as np
 
 from instrument.iso9283 import pose_repeatability
-from instrument.pose import Geometry, Pose, make_homography, observe_crosses, predict_measurements, small_motion_pose, solve_pose
+from instrument.pose import (
+    Geometry,
+    Pose,
+    make_homography,
+    observe_crosses,
+    predict_measurements,
+    small_motion_pose,
+    solve_pose,
+)
 
 METRES_PER_PIXEL = 0.160 / 1024
-CAMERAS = {"x": (np.radians(37.0), True, (3e-5, -2e-5)), "y": (np.radians(-128.0), False, (-1e-5, 2e-5)), "z": (np.radians(90.0), True, (0.0, 1e-5))}
-AXES = {"x": ([0.25, 0, 0], [0, 1, 0], [0, 0, 1]), "y": ([0, 0.25, 0], [0, 0, 1], [1, 0, 0]), "z": ([0, 0, 0.25], [1, 0, 0], [0, 1, 0])}
+CAMERAS = {
+    "x": (np.radians(37.0), True, (3e-5, -2e-5)),
+    "y": (np.radians(-128.0), False, (-1e-5, 2e-5)),
+    "z": (np.radians(90.0), True, (0.0, 1e-5)),
+}
+AXES = {
+    "x": ([0.25, 0, 0], [0, 1, 0], [0, 0, 1]),
+    "y": ([0, 0.25, 0], [0, 0, 1], [1, 0, 0]),
+    "z": ([0, 0, 0.25], [1, 0, 0], [0, 1, 0]),
+}
 
 
 def station() -> Geometry:
@@ -29,7 +45,13 @@ def station() -> Geometry:
     for name, (origin, u, v) in AXES.items():
         rotation, mirrored, perspective = CAMERAS[name]
         homography = make_homography(METRES_PER_PIXEL, rotation=rotation, mirrored=mirrored, perspective=perspective)
-        screens[name] = {"origin": origin, "u": u, "v": v, "pixel_to_screen": homography.tolist(), "size_px": [1024, 1040]}
+        screens[name] = {
+            "origin": origin,
+            "u": u,
+            "v": v,
+            "pixel_to_screen": homography.tolist(),
+            "size_px": [1024, 1040],
+        }
     return Geometry.from_dict({"screens": screens})
 
 
@@ -45,9 +67,15 @@ def time_solver(geometry: Geometry, repeats: int = 2000) -> dict[str, tuple[floa
         pose = Pose.from_euler(rng.uniform(-0.05, 0.05, 3), np.radians(rng.uniform(-2, 2, 3)))
         cases.append(predict_measurements(pose, geometry, noise_px=0.02, rng=rng))
     timings = {}
-    for label, prepare in (("solve_pose(CrossMeasurement)", lambda m: m), ("solve_pose(ScreenCross)", lambda m: observe_crosses(m, geometry)), ("small_motion_pose", None)):
+    for label, prepare in (
+        ("solve_pose(CrossMeasurement)", lambda m: m),
+        ("solve_pose(ScreenCross)", lambda m: observe_crosses(m, geometry)),
+        ("small_motion_pose", None),
+    ):
         inputs = [prepare(m) if prepare else m for m in cases]
-        function = (lambda m: small_motion_pose(m, geometry)) if prepare is None else (lambda m: solve_pose(m, geometry))
+        function = (
+            (lambda m: small_motion_pose(m, geometry)) if prepare is None else (lambda m: solve_pose(m, geometry))
+        )
         for m in inputs:  # warm up
             function(m)
         # CPU time of this process (what one core spends, whatever else runs on the machine) and
@@ -80,7 +108,9 @@ def departure_table(geometry: Geometry, trials: int = 40):
                 assert np.abs(exact.translation - truth.translation).max() < 1e-9
                 for lever in worst:
                     estimate = small_motion_pose(crosses, geometry, lever=lever)
-                    worst[lever][0] = max(worst[lever][0], float(np.abs(estimate.translation - truth.translation).max()))
+                    worst[lever][0] = max(
+                        worst[lever][0], float(np.abs(estimate.translation - truth.translation).max())
+                    )
                     worst[lever][1] = max(worst[lever][1], float(np.abs(estimate.euler - truth.euler).max()))
             rows.append((translation_mm, rotation_deg, worst))
     return rows
@@ -118,7 +148,9 @@ def main() -> None:
         print(f"  {label:32s} {cpu_ms:7.3f} | {wall_ms:7.3f}")
     print()
     print("closed form vs exact solver: worst |error| over 40 random directions per row")
-    print("| |t| (mm) | rotation (°) | paper lever: position (µm) | angle (″) | exact lever: position (µm) | angle (″) |")
+    print(
+        "| |t| (mm) | rotation (°) | paper lever: position (µm) | angle (″) | exact lever: position (µm) | angle (″) |"
+    )
     print("| ---: | ---: | ---: | ---: | ---: | ---: |")
     for translation_mm, rotation_deg, worst in departure_table(geometry):
         paper, exact = worst["paper"], worst["exact"]

@@ -16,9 +16,9 @@ import psutil
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from drivers.robot import URRobot  # noqa: E402
-from sim_devices import TwinProcess  # noqa: E402
-from sim_devices.cell import free_loopback_host  # noqa: E402
+from drivers.robot import URRobot
+from sim_devices import TwinProcess
+from sim_devices.cell import free_loopback_host
 
 TIME_SCALE = 10.0
 

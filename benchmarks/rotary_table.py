@@ -17,9 +17,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from drivers.rotary_table import create  # noqa: E402
-from sim_devices import World  # noqa: E402
-from sim_devices.rotary_table import RotaryTableTwin  # noqa: E402
+from drivers.rotary_table import create
+from sim_devices import World
+from sim_devices.rotary_table import RotaryTableTwin
 
 
 def _measure(table, n: int) -> tuple[float, float]:
@@ -43,9 +43,16 @@ def main() -> None:
     endpoints = twin.start()
     try:
         cases = {
-            "modbus_tcp (fault proxy)": {"adapter": "modbus_tcp", "host": "127.0.0.1", "port": endpoints["modbus_tcp_port"]},
-            "modbus_tcp (direct)": {"adapter": "modbus_tcp", "host": "127.0.0.1",
-                                    "port": endpoints["modbus_tcp_direct_port"]},
+            "modbus_tcp (fault proxy)": {
+                "adapter": "modbus_tcp",
+                "host": "127.0.0.1",
+                "port": endpoints["modbus_tcp_port"],
+            },
+            "modbus_tcp (direct)": {
+                "adapter": "modbus_tcp",
+                "host": "127.0.0.1",
+                "port": endpoints["modbus_tcp_direct_port"],
+            },
             "modbus_rtu (pty relay)": {"adapter": "modbus_rtu", "port": endpoints["modbus_rtu_port"]},
             "gcs_serial POS? (pty relay)": {"adapter": "gcs_serial", "port": endpoints["gcs_port"]},
         }

@@ -17,13 +17,13 @@ import os
 
 os.environ["OMP_NUM_THREADS"] = "1"  # before numpy loads its BLAS
 
-import argparse  # noqa: E402
-import sys  # noqa: E402
-import time  # noqa: E402
-from pathlib import Path  # noqa: E402
+import argparse
+import sys
+import time
+from pathlib import Path
 
-import cv2  # noqa: E402
-import numpy as np  # noqa: E402
+import cv2
+import numpy as np
 
 cv2.setNumThreads(1)
 ROOT = Path(__file__).resolve().parents[1]

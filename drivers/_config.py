@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import fields
-from typing import Any, Mapping
+from typing import Any
 
 
 def checked_fields(cls: type, data: Mapping[str, Any] | None, what: str) -> dict[str, Any]:

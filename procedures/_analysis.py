@@ -21,21 +21,21 @@ if TYPE_CHECKING:  # pragma: no cover
     from procedures._engine import RunEngine
 
 
-def _truth(engine: "RunEngine") -> TruthLog | None:
+def _truth(engine: RunEngine) -> TruthLog | None:
     sim = engine.station.model.simulation
     if sim is None or not sim.truth_log or not Path(sim.truth_log).is_file():
         return None
     return TruthLog.read(sim.truth_log)
 
 
-def analyse(engine: "RunEngine") -> dict[str, Any]:
+def analyse(engine: RunEngine) -> dict[str, Any]:
     samples = engine.store.samples(engine.run_id)
     if isinstance(engine.procedure, (DisplacementCalibration, AngleCalibration)):
         return analyse_calibration(engine, samples)
     return analyse_iso(engine, samples)
 
 
-def analyse_calibration(engine: "RunEngine", samples) -> dict[str, Any]:
+def analyse_calibration(engine: RunEngine, samples) -> dict[str, Any]:
     displacement = isinstance(engine.procedure, DisplacementCalibration)
     kind = "displacement" if displacement else "angle"
     truth = _truth(engine)
@@ -73,7 +73,7 @@ def analyse_calibration(engine: "RunEngine", samples) -> dict[str, Any]:
     }
 
 
-def analyse_iso(engine: "RunEngine", samples) -> dict[str, Any]:
+def analyse_iso(engine: RunEngine, samples) -> dict[str, Any]:
     station = engine.station.model
     reference = station.frames.reference_tcp_pose
     opr_to_tool = ur_to_matrix(station.frames.tool_in_opr)

@@ -7,9 +7,9 @@ import os
 import signal
 import sys
 import time
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
 
 from procedures._store import RunStore
 
@@ -81,8 +81,12 @@ class Display:
                     f"ETA {_clock(event.get('eta_s'))} | {self.last}")
             print("\r" + line[:150].ljust(150), end="", file=self.stream, flush=True)
         elif kind == "state":
-            print(f"\n{time.strftime('%H:%M:%S')} {event['state']}" + (f": {event['reason']}" if event.get("reason") else ""),
-                  file=self.stream, flush=True)
+            print(
+                f"\n{time.strftime('%H:%M:%S')} {event['state']}"
+                + (f": {event['reason']}" if event.get("reason") else ""),
+                file=self.stream,
+                flush=True,
+            )
         elif kind == "dry_run":
             problems = event.get("problems") or []
             print(f"dry run: {event['steps']} steps checked, {len(problems)} problems", file=self.stream, flush=True)

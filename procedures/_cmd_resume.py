@@ -30,7 +30,11 @@ def run(args) -> int:
         except KeyError as exc:
             print(exc.args[0], file=sys.stderr)
             return 1
-    seed = args.seed if args.seed is not None else int(((stored["station"] or {}).get("simulation") or {}).get("seed") or 0)
+    seed = (
+        args.seed
+        if args.seed is not None
+        else int(((stored["station"] or {}).get("simulation") or {}).get("seed") or 0)
+    )
     mode = "jsonl" if args.jsonl else "quiet" if args.quiet else "bar"
     try:
         with station_for(args.station, args.runs_dir, seed) as station:

@@ -10,8 +10,9 @@ from __future__ import annotations
 import re
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -31,7 +32,7 @@ from procedures._models import (
 from procedures._plan import Step, build_plan
 from procedures._science import COMPONENTS, MeasurementFailed
 from procedures._station import StationRuntime
-from procedures._store import TERMINAL, RunStore
+from procedures._store import RunStore
 
 SCREENS = ("x", "y", "z")
 RESUMABLE = ("QUEUED", "RUNNING", "PAUSED", "FAILED")
@@ -89,7 +90,7 @@ class RunEngine:
 
     def __init__(self, store: RunStore, run_id: str, procedure: ProcedureFile, station: StationRuntime, science,
                  *, hooks: HookRunner | None = None, listener: Callable[[dict], None] | None = None,
-                 pause_handler: Callable[["RunEngine"], str] | None = None, pause_timeout_s: float = 3600.0) -> None:
+                 pause_handler: Callable[[RunEngine], str] | None = None, pause_timeout_s: float = 3600.0) -> None:
         self.store, self.run_id, self.procedure, self.station, self.science = store, run_id, procedure, station, science
         self.params = procedure.parameters
         self.hooks = hooks or HookRunner()
@@ -407,9 +408,13 @@ class RunEngine:
                     frames_saved += self._save_frames(step, triples, f"failed{attempt}")
                 continue
             poses = np.array([m.pose for m in measurements])
-            solved = {"pose": poses.mean(axis=0).tolist(), "pose_std": poses.std(axis=0).tolist(),
-                      "per_frame": poses.tolist(), "residual_rms": float(np.mean([m.residual_rms for m in measurements])),
-                      "components": list(COMPONENTS)}
+            solved = {
+                "pose": poses.mean(axis=0).tolist(),
+                "pose_std": poses.std(axis=0).tolist(),
+                "per_frame": poses.tolist(),
+                "residual_rms": float(np.mean([m.residual_rms for m in measurements])),
+                "components": list(COMPONENTS),
+            }
             corrected = None
             if self.compensators:
                 pose, flags = np.asarray(solved["pose"]), []

@@ -16,8 +16,9 @@ import subprocess
 import threading
 import urllib.error
 import urllib.request
+from collections.abc import Callable, Iterable
 from importlib.metadata import entry_points
-from typing import Any, Callable, Iterable
+from typing import Any
 
 from procedures._models import HookSpec
 

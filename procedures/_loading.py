@@ -94,7 +94,9 @@ def load_station(path: str | Path, *, check_geometry: bool = True) -> StationFil
     """
     marked = load_marked(path)
     if not isinstance(marked.data, dict):
-        raise ConfigError([f"{marked.source}:1: (document): expected a mapping with name, devices, geometry, frames, envelope"])
+        raise ConfigError(
+            [f"{marked.source}:1: (document): expected a mapping with name, devices, geometry, frames, envelope"]
+        )
     try:
         station = StationFile.model_validate(marked.data)
     except ValidationError as exc:

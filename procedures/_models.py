@@ -20,7 +20,9 @@ Pose6 = Annotated[
 ]
 AxisName = Literal["x", "y", "z"]
 EVENTS = ("run_started", "run_paused", "run_resumed", "run_finished", "run_failed", "run_aborted", "point_measured")
-Event = Literal["run_started", "run_paused", "run_resumed", "run_finished", "run_failed", "run_aborted", "point_measured"]
+Event = Literal[
+    "run_started", "run_paused", "run_resumed", "run_finished", "run_failed", "run_aborted", "point_measured"
+]
 
 
 class _Strict(BaseModel):
@@ -32,10 +34,14 @@ class HookSpec(_Strict):
     """One hook: exactly one of ``call``, ``entry_point``, ``shell``, ``http``."""
 
     events: list[Event] = Field(default_factory=lambda: list(EVENTS), description="events that trigger the hook")
-    call: str | None = Field(None, description="a Python callable 'package.module:function', called with the event dict")
+    call: str | None = Field(
+        None, description="a Python callable 'package.module:function', called with the event dict"
+    )
     entry_point: str | None = Field(None, description="name of an entry point in group 'opr_instrument.hooks'")
     shell: str | None = Field(None, description="a shell command; the event JSON is on stdin and in $INSTRUMENT_EVENT")
-    http: str | None = Field(None, description="a loopback URL (http://127.x.x.x:port/path) that receives a POST of the event JSON")
+    http: str | None = Field(
+        None, description="a loopback URL (http://127.x.x.x:port/path) that receives a POST of the event JSON"
+    )
     timeout_s: float = Field(10.0, gt=0, le=600, description="seconds before the hook is abandoned")
 
     @model_validator(mode="before")
@@ -47,7 +53,7 @@ class HookSpec(_Strict):
         return data
 
     @model_validator(mode="after")
-    def _exactly_one(self) -> "HookSpec":
+    def _exactly_one(self) -> HookSpec:
         given = [k for k in ("call", "entry_point", "shell", "http") if getattr(self, k)]
         if len(given) != 1:
             raise ValueError(f"a hook needs exactly one of call, entry_point, shell, http (got {given or 'none'})")
@@ -116,7 +122,7 @@ class EnvelopeConfig(_Strict):
     max_joint_acceleration: float = Field(3.0, gt=0, description="rad/s²")
 
     @model_validator(mode="after")
-    def _ordered(self) -> "EnvelopeConfig":
+    def _ordered(self) -> EnvelopeConfig:
         if any(lo >= hi for lo, hi in zip(self.box_min, self.box_max)):
             raise ValueError(f"box_min must be below box_max on every axis (got {self.box_min} / {self.box_max})")
         return self
@@ -182,10 +188,12 @@ class DisplacementParameters(MotionParameters):
         description="per group, offset (mm, in M) of the whole line from M's origin",
     )
     interferometer_average_s: float = Field(0.5, gt=0, le=60, description="averaging window, s")
-    record_path: str | None = Field(None, description="where to write the calibration record (default: in the run folder)")
+    record_path: str | None = Field(
+        None, description="where to write the calibration record (default: in the run folder)"
+    )
 
     @model_validator(mode="after")
-    def _consistent(self) -> "DisplacementParameters":
+    def _consistent(self) -> DisplacementParameters:
         if self.stop_mm <= self.start_mm:
             raise ValueError(f"stop_mm ({self.stop_mm}) must be above start_mm ({self.start_mm})")
         if len(self.group_start_offsets_mm) != self.groups:
@@ -211,7 +219,7 @@ class AngleParameters(MotionParameters):
     record_path: str | None = None
 
     @model_validator(mode="after")
-    def _consistent(self) -> "AngleParameters":
+    def _consistent(self) -> AngleParameters:
         if self.stop_deg <= self.start_deg:
             raise ValueError(f"stop_deg ({self.stop_deg}) must be above start_deg ({self.start_deg})")
         if len(self.group_start_offsets_deg) != self.groups:

@@ -6,8 +6,9 @@ rebuilds exactly the same list and skips the steps whose samples are already com
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 

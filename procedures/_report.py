@@ -70,18 +70,27 @@ def _iso_section(results: dict) -> str:
         if "true_stats" in entry:
             true = entry["true_stats"]
             cells = "".join(f"<td class=true>{_fmt(true.get(k), s, d)}</td>" for k, _, s, d in ISO_COLUMNS)
-            rows.append(f"<tr><td class='l true'>{escape(label)} (true)</td><td class=true>{true.get('n', '')}</td>{cells}</tr>")
+            rows.append(
+                f"<tr><td class='l true'>{escape(label)} (true)</td><td class=true>{true.get('n', '')}</td>{cells}</tr>"
+            )
     note = ("<p>Rows marked <span class=true>(true)</span> are computed from the simulated cell's ground-truth "
             "log at the same instants. Their RP columns compare like for like with the measured rows. Their AP "
             "columns do not: they put the true tool point, which carries the OPR and tool mounting errors the "
             "simulated cell hides from the instrument, against the commanded poses of the measured transform "
             "step.</p>") if has_truth else ""
     transform = results.get("transform", {})
-    transform_text = (f"<p>End-effector transform step: robot↔M rigid fit over {transform.get('points')} poses, "
-                      f"residual RMS {_fmt(transform.get('residual_rms'), 1e6)} µm.</p>") if transform.get("fitted") else \
-        "<p>No end-effector transform step (commanded poses used as they are).</p>"
+    transform_text = (
+        (
+            f"<p>End-effector transform step: robot↔M rigid fit over {transform.get('points')} poses, "
+            f"residual RMS {_fmt(transform.get('residual_rms'), 1e6)} µm.</p>"
+        )
+        if transform.get("fitted")
+        else "<p>No end-effector transform step (commanded poses used as they are).</p>"
+    )
     comp = results.get("compensation") or []
-    comp_text = f"<p>Compensation applied: {escape(', '.join(comp))}.</p>" if comp else "<p>No compensation applied.</p>"
+    comp_text = (
+        f"<p>Compensation applied: {escape(', '.join(comp))}.</p>" if comp else "<p>No compensation applied.</p>"
+    )
     plots = []
     for label in results.get("order", []):
         entry = points[label]
@@ -117,8 +126,13 @@ def _calibration_section(results: dict) -> str:
         measured = np.asarray(curve.get("measured", []), float)
         before = np.asarray(curve.get("error_before", []), float)
         after = np.asarray(curve.get("error_after", []), float) if curve.get("error_after") is not None else None
-        def stat(a):
-            return (f"{np.max(np.abs(a)) * escale:.3f}", f"{np.sqrt(np.mean(a ** 2)) * escale:.3f}") if a is not None and a.size else ("—", "—")
+        def stat(a, escale=escale):
+            return (
+                (f"{np.max(np.abs(a)) * escale:.3f}", f"{np.sqrt(np.mean(a**2)) * escale:.3f}")
+                if a is not None and a.size
+                else ("—", "—")
+            )
+
         b, a = stat(before), stat(after)
         rows.append(f"<tr><td class=l>{name}</td><td>{measured.size}</td><td>{b[0]}</td><td>{b[1]}</td>"
                     f"<td>{a[0]}</td><td>{a[1]}</td></tr>")
@@ -140,14 +154,17 @@ def _calibration_section(results: dict) -> str:
              "<th>mean (reference − true)</th><th>std</th><th class=l>unit</th></tr>"
              + "".join(truth_rows) + "</table>") if truth_rows else ""
     summary = results.get("summary") or {}
-    return (f"<h2>Calibration</h2><p>Record written: <code>{escape(str(results.get('record_path')))}</code>, "
-            f"id <code>{escape(str(results.get('record_id')))}</code>.</p>"
-            "<table><tr><th class=l>component</th><th>samples</th><th>max |error| before (µm or ″)</th>"
-            "<th>RMS before (µm or ″)</th><th>max |error| after (µm or ″)</th><th>RMS after (µm or ″)</th></tr>"
-            + "".join(rows) + "</table>"
-            "<p>Error = measured − reference; “after” as reported by the fit (held-out where the core evaluates so).</p>"
-            f"<div class=plots>{''.join(plots)}</div>{truth}"
-            + (f"<h3>Fit summary</h3><pre>{escape(json.dumps(summary, indent=1, default=str))}</pre>" if summary else ""))
+    return (
+        f"<h2>Calibration</h2><p>Record written: <code>{escape(str(results.get('record_path')))}</code>, "
+        f"id <code>{escape(str(results.get('record_id')))}</code>.</p>"
+        "<table><tr><th class=l>component</th><th>samples</th><th>max |error| before (µm or ″)</th>"
+        "<th>RMS before (µm or ″)</th><th>max |error| after (µm or ″)</th><th>RMS after (µm or ″)</th></tr>"
+        + "".join(rows)
+        + "</table>"
+        "<p>Error = measured − reference; “after” as reported by the fit (held-out where the core evaluates so).</p>"
+        f"<div class=plots>{''.join(plots)}</div>{truth}"
+        + (f"<h3>Fit summary</h3><pre>{escape(json.dumps(summary, indent=1, default=str))}</pre>" if summary else "")
+    )
 
 
 def render_report(run: dict, samples: list, events: list[dict]) -> str:
@@ -173,16 +190,28 @@ def render_report(run: dict, samples: list, events: list[dict]) -> str:
     else:
         body = "<p>No results: the run has not finished.</p>"
     failed = [s for s in samples if not s.ok]
-    failed_html = ("<h2>Failed poses</h2><table><tr><th class=l>step</th><th class=l>error</th><th class=l>frames</th></tr>"
-                   + "".join(f"<tr><td class=l>{escape(s.step_key)}</td><td class=l>{escape(s.error or '')}</td>"
-                             f"<td class=l>{len(s.frames or [])} saved</td></tr>" for s in failed) + "</table>") if failed else ""
+    failed_html = (
+        (
+            "<h2>Failed poses</h2><table><tr><th class=l>step</th><th class=l>error</th><th class=l>frames</th></tr>"
+            + "".join(
+                f"<tr><td class=l>{escape(s.step_key)}</td><td class=l>{escape(s.error or '')}</td>"
+                f"<td class=l>{len(s.frames or [])} saved</td></tr>"
+                for s in failed
+            )
+            + "</table>"
+        )
+        if failed
+        else ""
+    )
     event_rows = "".join(f"<tr><td class=l>{_time(e['time'])}</td><td class=l>{escape(e['kind'])}</td>"
                          f"<td class=l>{escape(e['message'] or '')}</td></tr>" for e in events
                          if e["kind"] not in ("measure_failed",))
-    provenance = (f"<h2>Provenance</h2><h3>Parameters</h3><pre>{escape(json.dumps(run.get('parameters'), indent=1))}</pre>"
-                  f"<h3>Procedure file</h3><pre>{escape(run.get('procedure_text') or '')}</pre>"
-                  f"<h3>Station snapshot</h3><pre>{escape(json.dumps(run.get('station'), indent=1))}</pre>"
-                  f"<h3>Events</h3><table>{event_rows}</table>")
+    provenance = (
+        f"<h2>Provenance</h2><h3>Parameters</h3><pre>{escape(json.dumps(run.get('parameters'), indent=1))}</pre>"
+        f"<h3>Procedure file</h3><pre>{escape(run.get('procedure_text') or '')}</pre>"
+        f"<h3>Station snapshot</h3><pre>{escape(json.dumps(run.get('station'), indent=1))}</pre>"
+        f"<h3>Events</h3><table>{event_rows}</table>"
+    )
     return (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>run {run['id'][:8]} — {escape(run['procedure'])}"
             f"</title><style>{_CSS}</style></head><body>{header}{body}{failed_html}{provenance}</body></html>")
 

@@ -10,10 +10,10 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import json
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -133,11 +133,16 @@ class InstrumentScience:
                 raise MeasurementFailed(f"screen {screen}: {exc}") from None
             crosses[screen] = cross
             quality[screen] = {
-                "center_px": [float(v) for v in cross.center], "angle_rad": float(cross.angle),
-                "perpendicularity_rad": float(cross.perpendicularity), "peak_level": float(cross.peak_level),
+                "center_px": [float(v) for v in cross.center],
+                "angle_rad": float(cross.angle),
+                "perpendicularity_rad": float(cross.perpendicularity),
+                "peak_level": float(cross.peak_level),
                 "sections": [int(cross.horizontal.sections), int(cross.vertical.sections)],
                 "residual_rms_px": [float(cross.horizontal.residual_rms), float(cross.vertical.residual_rms)],
-                "saturated_sections": [int(cross.horizontal.saturated_sections), int(cross.vertical.saturated_sections)],
+                "saturated_sections": [
+                    int(cross.horizontal.saturated_sections),
+                    int(cross.vertical.saturated_sections),
+                ],
             }
         try:
             estimate = solve_pose(crosses, self.geometry)

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import importlib
 import sys
-from typing import Any, Callable, Protocol
+from collections.abc import Callable
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -75,7 +76,9 @@ class NoOperator:
         raise RuntimeError(f"the procedure needs the OPR mounted on {where}, and this station has no operator")
 
     def align_interferometer(self, axis: str) -> None:
-        raise RuntimeError(f"the procedure needs the interferometer aligned to {axis}, and this station has no operator")
+        raise RuntimeError(
+            f"the procedure needs the interferometer aligned to {axis}, and this station has no operator"
+        )
 
 
 def default_operator(station: StationFile) -> Operator:
@@ -187,7 +190,7 @@ class StationRuntime:
         return problems
 
     def close(self) -> None:
-        for role, device in reversed(list(self._open.items())):
+        for device in reversed(list(self._open.values())):
             try:
                 device.close()
             except Exception:

@@ -16,7 +16,7 @@ class TruthLog:
         self.times = [e["time"] for e in self.entries]
 
     @classmethod
-    def read(cls, path: str | Path) -> "TruthLog":
+    def read(cls, path: str | Path) -> TruthLog:
         entries = []
         with open(path, encoding="utf-8") as handle:
             for line in handle:

@@ -75,7 +75,11 @@ def _walk(node: yaml.Node, path: Path_, lines: dict, key_lines: dict) -> None:
     lines[path] = node.start_mark.line + 1
     if isinstance(node, yaml.MappingNode):
         for key_node, value_node in node.value:
-            key = yaml.safe_load(yaml.serialize(key_node)) if not isinstance(key_node, yaml.ScalarNode) else key_node.value
+            key = (
+                yaml.safe_load(yaml.serialize(key_node))
+                if not isinstance(key_node, yaml.ScalarNode)
+                else key_node.value
+            )
             child = path + (key,)
             key_lines[child] = key_node.start_mark.line + 1
             _walk(value_node, child, lines, key_lines)

@@ -74,7 +74,7 @@ def iso_table(results: dict[str, Any]) -> str:
         entry = results["points"][point]
         m, t = entry["stats"], entry.get("true_stats") or {}
 
-        def pair(key: str) -> str:
+        def pair(key: str, m=m, t=t) -> str:
             true = f"{t[key] / ARCSEC:.2f}" if key in t else "–"
             return f"{m[key] / ARCSEC:.2f} / {true}"
 
@@ -91,7 +91,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--cycles", type=int, default=30, help="ISO cycles (paper: 30)")
     parser.add_argument("--quick", action="store_true", help="coarser calibration grids (a smoke run)")
-    parser.add_argument("--quiet", action="store_true", help="no progress bars (the default when stderr is not a terminal)")
+    parser.add_argument(
+        "--quiet", action="store_true", help="no progress bars (the default when stderr is not a terminal)"
+    )
     parser.add_argument("--time-scale", type=float, default=4.0,
                         help="simulated seconds per wall second for robot and table motion (default 4)")
     args = parser.parse_args(argv)

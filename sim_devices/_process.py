@@ -145,7 +145,7 @@ class TwinProcess:
     def alive(self) -> bool:
         return self._process is not None and self._process.is_alive()
 
-    def __enter__(self) -> "TwinProcess":
+    def __enter__(self) -> TwinProcess:
         self.start()
         return self
 

@@ -33,7 +33,7 @@ import threading
 import time
 import tty
 from collections import deque
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -162,7 +162,7 @@ class FaultyRelay:
         self.closed = threading.Event()  # set when the relay ended (stop, hang-up, peer closed)
         self.on_close: Callable[[], None] | None = None
 
-    def start(self) -> "FaultyRelay":
+    def start(self) -> FaultyRelay:
         self._thread.start()
         return self
 
@@ -335,7 +335,7 @@ class PtyRelay:
             owned_fds=(device_master, device_slave, host_master, host_slave),
         )
 
-    def start(self) -> "PtyRelay":
+    def start(self) -> PtyRelay:
         self.relay.start()
         return self
 

@@ -155,7 +155,7 @@ class SimCamera:
         self._open = False
         self._pending = None
 
-    def __enter__(self) -> "SimCamera":
+    def __enter__(self) -> SimCamera:
         self.open()
         return self
 

@@ -14,8 +14,9 @@ from __future__ import annotations
 import socket
 import tempfile
 import time
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 import yaml
@@ -243,7 +244,7 @@ class SimCell:
         )
         self.endpoints: dict[str, Any] = {}
 
-    def start(self) -> "SimCell":
+    def start(self) -> SimCell:
         self.endpoints = self._process.start()
         return self
 
@@ -267,7 +268,7 @@ class SimCell:
     def client(self) -> ControlClient:
         return ControlClient(self.endpoints["control"]["host"], self.endpoints["control"]["port"])
 
-    def __enter__(self) -> "SimCell":
+    def __enter__(self) -> SimCell:
         return self.start()
 
     def __exit__(self, *exc) -> None:

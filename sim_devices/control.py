@@ -12,7 +12,8 @@ import json
 import socket
 import socketserver
 import threading
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 
 class ControlError(RuntimeError):

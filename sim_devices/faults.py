@@ -9,11 +9,11 @@ from __future__ import annotations
 
 import threading
 from dataclasses import dataclass, field
-from enum import Enum
+from enum import StrEnum
 from typing import Any
 
 
-class FaultKind(str, Enum):
+class FaultKind(StrEnum):
     DROP_REPLY = "drop_reply"  # the request is read, no answer is sent
     DELAY = "delay"  # the answer comes late (params: seconds)
     GARBAGE = "garbage"  # random bytes instead of (or before) the answer

@@ -29,8 +29,9 @@ centre near the image centre, ``p_d = c + (p − c)·(1 + k1·ρ² + k2·ρ⁴)`
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -110,11 +111,14 @@ class OpticsConfig:
     speckle_grain_px: float = 3.0
 
     @classmethod
-    def from_dict(cls, data: Mapping[str, Any] | None) -> "OpticsConfig":
+    def from_dict(cls, data: Mapping[str, Any] | None) -> OpticsConfig:
         data = checked_fields(cls, data, "optics config")
         if "cameras" in data:
             data["cameras"] = {
-                k: v if isinstance(v, CameraMount) else CameraMount(**checked_fields(CameraMount, v, f"optics config cameras.{k}")) for k, v in dict(data["cameras"]).items()
+                k: v
+                if isinstance(v, CameraMount)
+                else CameraMount(**checked_fields(CameraMount, v, f"optics config cameras.{k}"))
+                for k, v in dict(data["cameras"]).items()
             }
             missing = set(AXIS_NAMES) - set(data["cameras"])
             if missing:

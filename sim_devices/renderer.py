@@ -27,8 +27,8 @@ Only a band of ±6σ around each stripe is computed (about 4 % of a 1 MP frame),
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Iterable
 
 import numpy as np
 from scipy.ndimage import gaussian_filter, map_coordinates
@@ -167,7 +167,9 @@ class Renderer:
             cfg = self.bench.config
             width, height = self.bench.cameras[name].size_px
             y, x = np.mgrid[0:height, 0:width].astype(np.float32)
-            r2 = ((x - (width - 1) / 2) ** 2 + (y - (height - 1) / 2) ** 2) / (((width - 1) / 2) ** 2 + ((height - 1) / 2) ** 2)
+            r2 = ((x - (width - 1) / 2) ** 2 + (y - (height - 1) / 2) ** 2) / (
+                ((width - 1) / 2) ** 2 + ((height - 1) / 2) ** 2
+            )
             self._background[name] = (cfg.background_level * (1.0 - cfg.vignetting * r2)).astype(np.float32)
         return self._background[name]
 
@@ -179,7 +181,9 @@ class Renderer:
         size = width * height
         pool = self._noise_pool
         if pool is None or pool.size < size + _POOL_SLACK:
-            pool = np.random.default_rng([self.seed % 2**63, 0x6E6F]).standard_normal(size + _POOL_SLACK, dtype=np.float32)
+            pool = np.random.default_rng([self.seed % 2**63, 0x6E6F]).standard_normal(
+                size + _POOL_SLACK, dtype=np.float32
+            )
             self._noise_pool = pool
         start = int(rng.integers(0, pool.size - size + 1))
         return pool[start:start + size].reshape(height, width)
@@ -237,7 +241,11 @@ class Renderer:
         r = np.linalg.norm(ray, axis=-1)
         cos_psi = np.clip(ray @ stripe.beam / r, -1.0, 1.0)
         psi = np.arccos(cos_psi)
-        level = stripe.peak_level * (bench.config.screen_distance / r) * np.exp(-2.0 * (psi / bench.config.fan_half_angle) ** 2)
+        level = (
+            stripe.peak_level
+            * (bench.config.screen_distance / r)
+            * np.exp(-2.0 * (psi / bench.config.fan_half_angle) ** 2)
+        )
         level = np.where(cos_psi > 0.0, level, 0.0)
         return rows, cols, profile * level[step_index]
 

@@ -24,9 +24,10 @@ import json
 import threading
 import time
 import zlib
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Literal, Mapping
+from typing import Any, Literal
 
 import numpy as np
 
@@ -67,9 +68,11 @@ class WorldConfig:
     kinematics: KinematicsConfig = field(default_factory=KinematicsConfig)
 
     @classmethod
-    def from_dict(cls, data: Mapping[str, Any] | None) -> "WorldConfig":
+    def from_dict(cls, data: Mapping[str, Any] | None) -> WorldConfig:
         data = checked_fields(cls, data, "world config")
-        kinematics = KinematicsConfig(**checked_fields(KinematicsConfig, data.get("kinematics"), "world config kinematics"))
+        kinematics = KinematicsConfig(
+            **checked_fields(KinematicsConfig, data.get("kinematics"), "world config kinematics")
+        )
         return cls(seed=int(data.get("seed", 0)), kinematics=kinematics)
 
 
@@ -160,7 +163,9 @@ class World:
             rng, kin.opr_mount_translation_std, kin.opr_mount_rotation_std
         )
         self.nominal_tool = pose6_to_matrix(kin.tool_nominal)
-        self.true_tool = self.nominal_tool @ small_random_transform(rng, kin.tool_translation_std, kin.tool_rotation_std)
+        self.true_tool = self.nominal_tool @ small_random_transform(
+            rng, kin.tool_translation_std, kin.tool_rotation_std
+        )
         self.true_table_axes = {
             name: _tilted_axis(index, rng, kin.table_axis_misalignment_std) for name, index in AXES.items()
         }

@@ -19,7 +19,6 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from drivers._errors import MotionRefused
 from drivers.camera._interface import Frame, GrabFailed
 from drivers.robot._envelope import MotionEnvelope
 from drivers.robot._interface import ProtectiveStop, RobotState

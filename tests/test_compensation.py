@@ -15,7 +15,6 @@ from instrument.compensation import (
     SmoothingSplineCompensator,
     align_groups,
     evaluate,
-    fit_esn,
     fit_spline_curve,
     make_reservoir,
     noise_floor,
@@ -47,7 +46,9 @@ def fast_methods(seed=0):
 def test_scenario_matches_the_paper_design(scenario):
     x, a = scenario.data["x"], scenario.data["a"]
     assert np.unique(x.point).size == 15 and np.unique(x.group).size == 3 and x.measured.size == 135
-    assert x.reference.min() == pytest.approx(0.0, abs=20 * UM) and x.reference.max() == pytest.approx(0.07, abs=20 * UM)
+    assert x.reference.min() == pytest.approx(0.0, abs=20 * UM) and x.reference.max() == pytest.approx(
+        0.07, abs=20 * UM
+    )
     for c in "xyz":
         assert 30 * UM < np.abs(scenario.data[c].error).max() < 100 * UM
     for c in "abc":
@@ -234,7 +235,7 @@ def test_every_model_survives_a_dict_round_trip(scenario):
     methods = fast_methods()
     methods["esn-residual"] = CsfPpsoEsnCompensator(n_particles=6, n_iterations=4, residual_of_csf=True)
     methods["csf+poly2"] = SmoothingSplineCompensator(trend_degree=2)
-    for name, method in methods.items():
+    for method in methods.values():
         model = method.fit(data.measured, data.error, data.group, data.point)
         again = FittedModel.from_dict(model.to_dict())
         np.testing.assert_allclose(again.predict(probe), model.predict(probe), rtol=1e-12, atol=1e-18)

@@ -36,8 +36,12 @@ def scenario():
 
 @pytest.fixture(scope="module")
 def record(scenario):
-    methods = {"csf-ppso-esn": CsfPpsoEsnCompensator(n_particles=8, n_iterations=6), "csf": SmoothingSplineCompensator(),
-               "gaussian_process": GaussianProcessCompensator(), "none": NoCompensation()}
+    methods = {
+        "csf-ppso-esn": CsfPpsoEsnCompensator(n_particles=8, n_iterations=6),
+        "csf": SmoothingSplineCompensator(),
+        "gaussian_process": GaussianProcessCompensator(),
+        "none": NoCompensation(),
+    }
     return calibrate({c: scenario.data[c] for c in ("x", "a")}, methods, PROVENANCE)
 
 

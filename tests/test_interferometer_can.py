@@ -93,7 +93,7 @@ def _fault_during_average(device, twin, kind, error, match, attempts=3, **params
     """Arm ``kind`` 0.1 s into a 1 s average and return the error it raised, checked against
     ``error``/``match``. On a starved host the slcan feed (host-stamped) may report a stall before
     the fault fires (conservative, and still a ``FeedGap``); then wait the fault out and try again."""
-    for attempt in range(attempts):
+    for _attempt in range(attempts):
         device.zero()
         timer = _arm_later(twin, 0.1, kind, **params)
         started = time.monotonic()

@@ -13,8 +13,8 @@ from drivers.interferometer import (
     DatumLost,
     FeedGap,
     FrameLayout,
-    create,
     crc8_j1850,
+    create,
 )
 from drivers.interferometer._feed import FeedBuffer
 from drivers.interferometer._layout import decode_displacement, decode_reply, decode_status, encode_command
@@ -25,7 +25,7 @@ LAYOUT = FrameLayout()
 # The worked example of docs/interferometer.md: +12.3456789 mm, counter 42, beam OK + datum set,
 # signal 14/15, on id 0x181.
 # 123456789 = 0x075BCD15 (little-endian in bytes 0..4); status 0x05 | 14 << 4 = 0xE5; CRC 0xEE.
-DOC_EXAMPLE = bytes.fromhex("15CD5B0700" "2A" "E5" "EE")
+DOC_EXAMPLE = bytes.fromhex("15CD5B07002AE5EE")
 
 
 def test_crc8_j1850_check_values():

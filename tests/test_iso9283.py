@@ -26,7 +26,9 @@ def poses_from(positions, angles=None):
 
 def test_repeatability_hand_computed():
     d = 1e-5
-    poses = poses_from([[0, 0, 0], [0, 0, 0], [0, 0, 0], [4 * d, 0, 0]], [[0.1, 0, 0], [0.2, 0, 0], [0.3, 0, 0], [0.2, 0, 0]])
+    poses = poses_from(
+        [[0, 0, 0], [0, 0, 0], [0, 0, 0], [4 * d, 0, 0]], [[0.1, 0, 0], [0.2, 0, 0], [0.3, 0, 0], [0.2, 0, 0]]
+    )
     rp = pose_repeatability(poses)
     # barycentre x = d, so l = (d, d, d, 3d): l̄ = 1.5d, S_l = d, RP_l = 4.5d
     np.testing.assert_allclose(rp.barycentre, [d, 0, 0, 0.2, 0, 0], atol=1e-15)
@@ -62,7 +64,10 @@ def test_angles_near_pi_stay_on_one_branch():
 def test_distance_accuracy_and_repeatability_hand_computed():
     n = 4
     second = poses_from(np.zeros((n, 3)), np.zeros((n, 3)))
-    first = poses_from([[0.100, 0, 0], [0.101, 0, 0], [0.099, 0, 0], [0.100, 0.0, 0]], [[0.0, 0, 3.1], [0.0, 0, 3.1], [0, 0, 3.1], [0, 0, 3.1]])
+    first = poses_from(
+        [[0.100, 0, 0], [0.101, 0, 0], [0.099, 0, 0], [0.100, 0.0, 0]],
+        [[0.0, 0, 3.1], [0.0, 0, 3.1], [0, 0, 3.1], [0, 0, 3.1]],
+    )
     second[:, 5] = -3.1
     result = distance_characteristics(first, second, [0.1005, 0, 0, 0, 0, 3.1], [0, 0, 0, 0, 0, -3.1])
     assert result.commanded_distance == pytest.approx(0.1005)
@@ -156,7 +161,10 @@ def test_confidence_intervals_are_reproducible_and_bracket_the_estimate():
     first = pose_repeatability(poses, confidence=0.9, seed=5)
     assert first.rp_l_ci == pose_repeatability(poses, confidence=0.9, seed=5).rp_l_ci
     assert first.rp_l_ci != pose_repeatability(poses, confidence=0.9, seed=6).rp_l_ci
-    for low, value, high in [(first.rp_l_ci[0], first.rp_l, first.rp_l_ci[1]), (first.rp_b_ci[0], first.rp_b, first.rp_b_ci[1])]:
+    for low, value, high in [
+        (first.rp_l_ci[0], first.rp_l, first.rp_l_ci[1]),
+        (first.rp_b_ci[0], first.rp_b, first.rp_b_ci[1]),
+    ]:
         assert low < value < high
     assert first.confidence == 0.9
 

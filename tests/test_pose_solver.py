@@ -27,11 +27,15 @@ FANS = ("xy", "xz", "yz", "yx", "zx", "zy")
 
 
 def random_pose(rng, translation=0.05, rotation_deg=2.0):
-    return Pose.from_euler(rng.uniform(-translation, translation, 3), np.radians(rng.uniform(-rotation_deg, rotation_deg, 3)))
+    return Pose.from_euler(
+        rng.uniform(-translation, translation, 3), np.radians(rng.uniform(-rotation_deg, rotation_deg, 3))
+    )
 
 
 def errors(estimate, truth):
-    return float(np.abs(estimate.translation - truth.translation).max()), truth.rotation_angle_to(estimate.pose if hasattr(estimate, "pose") else estimate)
+    return float(np.abs(estimate.translation - truth.translation).max()), truth.rotation_angle_to(
+        estimate.pose if hasattr(estimate, "pose") else estimate
+    )
 
 
 @pytest.mark.parametrize("geometry", [NOMINAL, AWKWARD], ids=["nominal cameras", "mirrored+turned cameras"])
@@ -85,7 +89,9 @@ def test_pixel_noise_error_is_linear_in_sigma():
     results = {}
     for sigma in (0.01, 0.02, 0.04):
         # Same seed: the same noise pattern, scaled — the error must scale with it.
-        estimate = solve_pose(predict_measurements(truth, AWKWARD, noise_px=sigma, rng=np.random.default_rng(9)), AWKWARD)
+        estimate = solve_pose(
+            predict_measurements(truth, AWKWARD, noise_px=sigma, rng=np.random.default_rng(9)), AWKWARD
+        )
         results[sigma] = np.r_[estimate.translation - truth.translation, estimate.euler - truth.euler]
     np.testing.assert_allclose(results[0.02], 2 * results[0.01], rtol=0.02, atol=1e-12)
     np.testing.assert_allclose(results[0.04], 4 * results[0.01], rtol=0.02, atol=1e-12)
@@ -154,7 +160,9 @@ def test_stripes_that_cannot_be_matched_or_are_parallel():
     )
     with pytest.raises(StripeMatchError, match="screen 'z'"):
         solve_pose(measurements, NOMINAL)
-    measurements["z"] = dataclasses.replace(cross, vertical=dataclasses.replace(cross.vertical, direction=cross.horizontal.direction))
+    measurements["z"] = dataclasses.replace(
+        cross, vertical=dataclasses.replace(cross.vertical, direction=cross.horizontal.direction)
+    )
     with pytest.raises(CrossOffScreenError, match="nearly parallel"):
         solve_pose(measurements, NOMINAL)
 
@@ -172,7 +180,11 @@ def test_inconsistent_crosses_are_refused_with_the_residual():
     assert estimate.residual_rms > 1e-4
     assert max(estimate.stripe_residuals.values()) > 1e-4
     with pytest.raises(InconsistentCrossesError):
-        solve_pose(predict_measurements(first, AWKWARD, noise_px=0.05, rng=np.random.default_rng(1)), AWKWARD, max_residual_rms=1e-9)
+        solve_pose(
+            predict_measurements(first, AWKWARD, noise_px=0.05, rng=np.random.default_rng(1)),
+            AWKWARD,
+            max_residual_rms=1e-9,
+        )
 
 
 def test_closed_form_is_exact_for_pure_translation_and_departs_with_rotation():

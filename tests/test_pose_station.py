@@ -13,7 +13,11 @@ from instrument.pose import Distortion, Geometry, GeometryError, make_homography
 
 METRES_PER_PIXEL = 0.160 / 1024
 SIZE_PX = [1024, 1040]
-AXES = {"x": ([0.25, 0, 0], [0, 1, 0], [0, 0, 1]), "y": ([0, 0.25, 0], [0, 0, 1], [1, 0, 0]), "z": ([0, 0, 0.25], [1, 0, 0], [0, 1, 0])}
+AXES = {
+    "x": ([0.25, 0, 0], [0, 1, 0], [0, 0, 1]),
+    "y": ([0, 0.25, 0], [0, 0, 1], [1, 0, 0]),
+    "z": ([0, 0, 0.25], [1, 0, 0], [0, 1, 0]),
+}
 
 
 def station_dict(cameras=None, *, distortion=None, size=True):
@@ -51,7 +55,9 @@ def test_round_trip_to_dict_from_dict():
     geometry = Geometry.from_dict(data)
     again = Geometry.from_dict(geometry.to_dict())
     assert again.to_dict() == geometry.to_dict()
-    np.testing.assert_array_equal(again.screens["x"].pixel_to_screen, np.asarray(data["screens"]["x"]["pixel_to_screen"]))
+    np.testing.assert_array_equal(
+        again.screens["x"].pixel_to_screen, np.asarray(data["screens"]["x"]["pixel_to_screen"])
+    )
     assert again.screens["z"].distortion == Distortion(2e-9, -1e-16, (510.0, 522.0))
     assert again.screens["y"].size_px == (1024, 1040)
 

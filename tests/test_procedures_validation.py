@@ -34,60 +34,94 @@ def _problems(text, name="bad.yaml"):
 
 
 BAD_PROCEDURES = [
-    ("""\
+    (
+        """\
      procedure: iso9283_repeatability
      parameters:
        cycles: 1
-     """, "bad.yaml:3: parameters.cycles: input should be greater than or equal to 2"),
-    ("""\
+     """,
+        "bad.yaml:3: parameters.cycles: input should be greater than or equal to 2",
+    ),
+    (
+        """\
      procedure: iso9283_repeatability
      parameters:
        cube_edge_m: 0.07
        cycle: 30
-     """, "bad.yaml:4: parameters.cycle: unknown field; expected one of"),
-    ("""\
+     """,
+        "bad.yaml:4: parameters.cycle: unknown field; expected one of",
+    ),
+    (
+        """\
      procedure: iso9283_repeatability
      parameters:
        cube_center_m: [0.035, 0.035]
-     """, "bad.yaml:3: parameters.cube_center_m: list should have at least 3 items"),
-    ("""\
+     """,
+        "bad.yaml:3: parameters.cube_center_m: list should have at least 3 items",
+    ),
+    (
+        """\
      procedure: displacement_calibration
      parameters:
        step_mm: five
-     """, "bad.yaml:3: parameters.step_mm: input should be a valid number"),
-    ("""\
+     """,
+        "bad.yaml:3: parameters.step_mm: input should be a valid number",
+    ),
+    (
+        """\
      procedure: displacement_calibration
      parameters:
        groups: 2
-     """, "bad.yaml:3: parameters.groups: groups is 2 but group_start_offsets_mm has 3 entries"),
-    ("""\
+     """,
+        "bad.yaml:3: parameters.groups: groups is 2 but group_start_offsets_mm has 3 entries",
+    ),
+    (
+        """\
      name: no kind
      parameters: {}
-     """, "bad.yaml:1: procedure: expected one of displacement_calibration, angle_calibration, iso9283_repeatability (missing)"),
-    ("""\
+     """,
+        "bad.yaml:1: procedure: expected one of displacement_calibration, angle_calibration, "
+        "iso9283_repeatability (missing)",
+    ),
+    (
+        """\
      # comment
      procedure: iso9283
-     """, "bad.yaml:2: procedure: expected one of"),
-    ("""\
+     """,
+        "bad.yaml:2: procedure: expected one of",
+    ),
+    (
+        """\
      procedure: angle_calibration
      parameters:
        axes: [x, w]
-     """, "bad.yaml:3: parameters.axes[1]: input should be 'x', 'y' or 'z'"),
-    ("""\
+     """,
+        "bad.yaml:3: parameters.axes[1]: input should be 'x', 'y' or 'z'",
+    ),
+    (
+        """\
      procedure: angle_calibration
      hooks:
        - shell: "echo hi"
          http: "http://127.0.0.1:9/x"
-     """, "bad.yaml:3: hooks[0]: a hook needs exactly one of call, entry_point, shell, http"),
-    ("""\
+     """,
+        "bad.yaml:3: hooks[0]: a hook needs exactly one of call, entry_point, shell, http",
+    ),
+    (
+        """\
      procedure: angle_calibration
      hooks:
        - http: "http://example.com/hook"
-     """, "bad.yaml:3: hooks[0].http: hooks post to loopback addresses only"),
-    ("""\
+     """,
+        "bad.yaml:3: hooks[0].http: hooks post to loopback addresses only",
+    ),
+    (
+        """\
      procedure: angle_calibration
      parameters: {start_deg: 1, stop_deg: [
-     """, "bad.yaml:3: YAML syntax"),
+     """,
+        "bad.yaml:3: YAML syntax",
+    ),
 ]
 
 

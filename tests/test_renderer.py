@@ -82,7 +82,9 @@ def test_noise_free_stripe_centres_match_the_analytic_intersection(bench, pose_i
         for i in range(2):
             errors = centroid_errors(signal, curves[i], curves[1 - i])
             assert len(errors) > 700, f"camera {name}: stripe {i} mostly off the image"
-            assert np.abs(errors).max() < 0.01, f"camera {name} stripe {i}: max centre error {np.abs(errors).max():.4f} px"
+            assert np.abs(errors).max() < 0.01, (
+                f"camera {name} stripe {i}: max centre error {np.abs(errors).max():.4f} px"
+            )
 
 
 def test_stripe_width_is_about_two_pixels(bench):

@@ -60,7 +60,11 @@ def test_reflection_is_guarded():
         (np.zeros((2, 3)), np.zeros((2, 3)), "at least 3 point pairs"),
         (np.eye(3), np.eye(4)[:, :3], "pair up row by row"),
         (np.eye(3)[:, :2], np.eye(3)[:, :2], r"\(n, 3\) array"),
-        ([[0, 0, 0], [1, 1, 1], [2, 2, 2], [3, 3, 3]], np.eye(4)[:, :3], "points_a: the points are coincident or collinear"),
+        (
+            [[0, 0, 0], [1, 1, 1], [2, 2, 2], [3, 3, 3]],
+            np.eye(4)[:, :3],
+            "points_a: the points are coincident or collinear",
+        ),
         (np.eye(3), [[1, 1, 1]] * 3, "points_b: the points are coincident or collinear"),
         ([[0, 0, np.nan], [1, 0, 0], [0, 1, 0]], np.eye(3), "NaN"),
         ("abc", np.eye(3), "points_a"),
@@ -97,4 +101,6 @@ def test_end_effector_transform_then_measuring_point_from_crosses():
     measured_tool = tool_pose(estimate, fit.pose)
     np.testing.assert_allclose(measured_tool.matrix, (opr_truth @ true_tool_in_opr).matrix, atol=1e-9)
     # The measuring point stays at the tool offset's distance from the OPR centre, whatever the pose.
-    assert np.linalg.norm(measured_tool.translation - opr_truth.translation) == pytest.approx(np.linalg.norm(true_tool_in_opr.translation))
+    assert np.linalg.norm(measured_tool.translation - opr_truth.translation) == pytest.approx(
+        np.linalg.norm(true_tool_in_opr.translation)
+    )

@@ -15,8 +15,8 @@ from scipy import stats
 from drivers._errors import DeviceConnectionError, DeviceTimeout, MotionRefused
 from drivers.robot import EmergencyStop, MotionEnvelope, ProtectiveStop, Robot, URRobot, create
 from sim_devices import TwinProcess
-from sim_devices.cell import free_loopback_host
 from sim_devices._transforms import invert, matrix_to_rotvec, pose6_to_matrix
+from sim_devices.cell import free_loopback_host
 
 pytest.importorskip("rtde_control")
 

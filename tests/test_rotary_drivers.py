@@ -73,7 +73,10 @@ def test_moves_agree_with_the_worlds_truth(rig):
         reported = table.wait_in_position(timeout=10)
         assert world.state().settled
         assert abs(reported - world.table_angle()) <= _bound(twin)
-        assert abs(reported - target) <= 2 * 2 * math.pi / twin.table_config.counts_per_rev + 3 * twin.table_config.noise_std
+        assert (
+            abs(reported - target)
+            <= 2 * 2 * math.pi / twin.table_config.counts_per_rev + 3 * twin.table_config.noise_std
+        )
     table.move_relative(0.25)
     reported = table.wait_in_position(timeout=10)
     assert abs(reported - 0.5) <= _bound(twin)

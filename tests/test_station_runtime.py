@@ -1,7 +1,6 @@
 """The station runtime hands each device what belongs to the station, not to the device entry."""
 
 import numpy as np
-import pytest
 
 import drivers.robot
 from procedures._models import StationFile

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from sim_devices import TwinProcess
-from sim_devices.cell import free_loopback_host
 from sim_devices._transforms import pose6_to_matrix
+from sim_devices.cell import free_loopback_host
 from sim_devices.ur import _kinematics as kin
 from sim_devices.ur._motion import Profile
 

@@ -5,7 +5,8 @@ import sim_devices)."""
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 from drivers.camera._interface import Camera, Frame, GrabFailed, Roi, TriggeredCamera
 from drivers.camera._pylon import SATURATION, PylonCamera, ensure_emulated_cameras
@@ -22,7 +23,9 @@ def create(config: Mapping[str, Any], *, name: str) -> Camera:
     if adapter not in ADAPTERS:
         raise ValueError(f"camera {name}: unknown adapter {adapter!r}; expected one of {sorted(ADAPTERS)}")
     cls = ADAPTERS[adapter]
-    known = set(cls.__init__.__code__.co_varnames[: cls.__init__.__code__.co_argcount + cls.__init__.__code__.co_kwonlyargcount])
+    known = set(
+        cls.__init__.__code__.co_varnames[: cls.__init__.__code__.co_argcount + cls.__init__.__code__.co_kwonlyargcount]
+    )
     unknown = set(settings) - known - {"self"}
     if unknown:
         raise ValueError(f"camera {name}: unknown setting(s) {sorted(unknown)} for adapter {adapter!r}")
@@ -30,7 +33,9 @@ def create(config: Mapping[str, Any], *, name: str) -> Camera:
     return cls(**settings)
 
 
-def create_triplet(configs: Mapping[str, Mapping[str, Any]], *, name: str = "cameras", retries: int = 2) -> CameraTriplet:
+def create_triplet(
+    configs: Mapping[str, Mapping[str, Any]], *, name: str = "cameras", retries: int = 2
+) -> CameraTriplet:
     """The station file's ``devices.cameras`` mapping (x, y, z) → a ``CameraTriplet`` (not opened)."""
     return CameraTriplet({key: create(cfg, name=key) for key, cfg in configs.items()}, retries=retries, name=name)
 

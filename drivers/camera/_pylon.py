@@ -38,8 +38,9 @@ from __future__ import annotations
 
 import os
 import time
+from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -117,7 +118,9 @@ class PylonCamera:
             return
         if self.emulator_image is not None:
             if not self.emulator_image.is_file():
-                raise DeviceConnectionError(self._device, "open", f"emulator image {self.emulator_image} does not exist")
+                raise DeviceConnectionError(
+                    self._device, "open", f"emulator image {self.emulator_image} does not exist"
+                )
             ensure_emulated_cameras()
         pylon, genicam = _pylon()
         factory = pylon.TlFactory.GetInstance()
@@ -159,7 +162,7 @@ class PylonCamera:
         except genicam.GenericException:
             pass  # a vanished camera cannot be closed more than it already is
 
-    def __enter__(self) -> "PylonCamera":
+    def __enter__(self) -> PylonCamera:
         self.open()
         return self
 
@@ -175,8 +178,17 @@ class PylonCamera:
                   pixel_format: str | None = None, roi: Roi | None = None,
                   software_trigger: bool | None = None) -> None:
         """Change settings; applied now when open (grabbing is paused around the change)."""
-        changes = {k: v for k, v in {"exposure_s": exposure_s, "gain_db": gain_db, "pixel_format": pixel_format,
-                                     "roi": _as_roi(roi), "software_trigger": software_trigger}.items() if v is not None}
+        changes = {
+            k: v
+            for k, v in {
+                "exposure_s": exposure_s,
+                "gain_db": gain_db,
+                "pixel_format": pixel_format,
+                "roi": _as_roi(roi),
+                "software_trigger": software_trigger,
+            }.items()
+            if v is not None
+        }
         self._settings.update(changes)
         if "software_trigger" in changes:
             self.trigger_source = "Software" if software_trigger else None
@@ -338,7 +350,7 @@ class PylonCamera:
         camera = self._camera
         try:
             removed = camera is not None and camera.IsCameraDeviceRemoved()
-        except Exception:  # noqa: BLE001 - the device may be gone entirely
+        except Exception:
             removed = True
         if removed:
             return DeviceConnectionError(self._device, operation, "the camera was removed")

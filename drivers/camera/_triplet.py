@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Mapping
+from collections.abc import Mapping
 
 from drivers._errors import DeviceConnectionError, DeviceError, DeviceTimeout
 from drivers.camera._interface import Camera, Frame, GrabFailed
@@ -48,7 +48,7 @@ class CameraTriplet:
         for camera in self.cameras.values():
             camera.close()
 
-    def __enter__(self) -> "CameraTriplet":
+    def __enter__(self) -> CameraTriplet:
         self.open()
         return self
 

@@ -12,7 +12,8 @@ are ``CanInterferometer`` options: ``ring_capacity``, ``open_timeout``, ``open_a
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 from drivers.interferometer._can import CanInterferometer
 from drivers.interferometer._feed import CanSample

@@ -18,7 +18,8 @@ import socket
 import threading
 import time
 from collections import deque
-from typing import Any, Iterator, Mapping
+from collections.abc import Iterator, Mapping
+from typing import Any
 
 import can
 
@@ -142,7 +143,7 @@ class CanInterferometer:
     # ------------------------------------------------------------------------------ constructors
     @classmethod
     def socketcand(cls, *, name: str, host: str, port: int, channel: str = "can0",
-                   layout: FrameLayout | Mapping | None = None, **options: Any) -> "CanInterferometer":
+                   layout: FrameLayout | Mapping | None = None, **options: Any) -> CanInterferometer:
         """A feed served by a socketcand daemon at ``host:port`` on CAN ``channel``."""
         return cls(name=name, bus_kwargs={"interface": "socketcand", "host": str(host), "port": int(port),
                                           "channel": str(channel)},
@@ -150,7 +151,7 @@ class CanInterferometer:
 
     @classmethod
     def slcan(cls, *, name: str, port: str, bitrate: int = 1_000_000,
-              layout: FrameLayout | Mapping | None = None, **options: Any) -> "CanInterferometer":
+              layout: FrameLayout | Mapping | None = None, **options: Any) -> CanInterferometer:
         """A feed on an slcan (Lawicel ASCII) adapter at serial ``port``."""
         return cls(name=name, bus_kwargs={"interface": "slcan", "channel": str(port), "bitrate": int(bitrate),
                                           "sleep_after_open": 0},
@@ -177,7 +178,7 @@ class CanInterferometer:
         _shutdown(bus)
         self._buffer.wake()
 
-    def __enter__(self) -> "CanInterferometer":
+    def __enter__(self) -> CanInterferometer:
         self.open()
         return self
 
@@ -446,8 +447,9 @@ class CanInterferometer:
             bus = self._open_bus_once("reconnect")
         except DeviceError as exc:
             cause = self._connection_error.cause if self._connection_error else "connection lost"
-            self._connection_error = DeviceConnectionError(self.name, "receive",
-                                                           f"{cause.split('; reconnect')[0]}; reconnect failed: {exc.cause}")
+            self._connection_error = DeviceConnectionError(
+                self.name, "receive", f"{cause.split('; reconnect')[0]}; reconnect failed: {exc.cause}"
+            )
             self._stop.wait(self.reconnect_interval)
             return
         with self._bus_lock:

@@ -11,8 +11,8 @@ from __future__ import annotations
 import math
 import threading
 import time
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import Callable, Iterator
 
 from drivers._errors import DeviceFault
 from drivers.interferometer._interface import BeamInterrupted, DatumLost, FeedGap, Sample

@@ -39,8 +39,9 @@ Command (host → head, ``command_id``, default 0x601) and reply (``reply_id``, 
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass
-from typing import Any, Mapping
+from typing import Any
 
 from drivers._config import checked_fields
 from drivers._errors import ProtocolError
@@ -88,7 +89,7 @@ class FrameLayout:
             raise ValueError(f"frame layout: status_rate must be in (0, sample_rate], got {self.status_rate!r}")
 
     @classmethod
-    def from_dict(cls, data: Mapping[str, Any] | None) -> "FrameLayout":
+    def from_dict(cls, data: Mapping[str, Any] | None) -> FrameLayout:
         """Accepts ids as ints or hex strings (``"0x181"``)."""
         data = checked_fields(cls, data, "frame layout")
         for key in ("displacement_id", "status_id", "command_id", "reply_id"):

@@ -1,6 +1,7 @@
 """Robot controllers: the ``Robot`` interface, the motion envelope, and adapters."""
 
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 from drivers.robot._envelope import MotionEnvelope
 from drivers.robot._interface import (

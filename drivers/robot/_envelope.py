@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -39,7 +40,7 @@ class MotionEnvelope:
     max_joint_acceleration: float = 3.0
 
     @classmethod
-    def from_dict(cls, data: Mapping[str, Any]) -> "MotionEnvelope":
+    def from_dict(cls, data: Mapping[str, Any]) -> MotionEnvelope:
         kwargs = dict(data)
         for key in ("box_min", "box_max", "reference_rotvec"):
             if key in kwargs:

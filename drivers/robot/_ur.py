@@ -26,7 +26,8 @@ import socket
 import struct
 import threading
 import time
-from typing import Any, Callable, Mapping
+from collections.abc import Callable, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -191,8 +192,10 @@ class URRobot:
                 if reply[2] != 86 or reply[3] != 1:
                     raise DeviceConnectionError(self.name, "connect", "the RTDE server refused protocol version 2")
             socket.create_connection((self.host, SCRIPT_PORT), timeout=timeout).close()
-        except socket.timeout:
-            raise DeviceTimeout(self.name, "connect", f"{self.host} accepted but did not answer within {timeout} s") from None
+        except TimeoutError:
+            raise DeviceTimeout(
+                self.name, "connect", f"{self.host} accepted but did not answer within {timeout} s"
+            ) from None
         except OSError as exc:
             raise DeviceConnectionError(self.name, "connect", f"cannot reach {self.host}: {exc}") from None
 
@@ -216,7 +219,7 @@ class URRobot:
                 except Exception:
                     pass
 
-    def __enter__(self) -> "URRobot":
+    def __enter__(self) -> URRobot:
         self.connect()
         return self
 
@@ -333,7 +336,9 @@ class URRobot:
         self.envelope.check_speed(speed, acceleration, joint=True, device=self.name)
         control, _ = self._ensure_ready("moveJ")
         offset = self._call("getTCPOffset", control.getTCPOffset)
-        target = np.asarray(self._call("getForwardKinematics", lambda: control.getForwardKinematics(q.tolist(), offset)))
+        target = np.asarray(
+            self._call("getForwardKinematics", lambda: control.getForwardKinematics(q.tolist(), offset))
+        )
         if target.shape != (6,):
             raise MoveFailed(self.name, "moveJ", "the controller could not compute the target pose")
         self.envelope.check_pose(target, self.name)
@@ -452,7 +457,7 @@ class URRobot:
                 reader.readline()  # greeting
                 sock.sendall(command.encode() + b"\n")
                 return reader.readline().decode(errors="replace").strip()
-        except socket.timeout:
+        except TimeoutError:
             raise DeviceTimeout(self.name, f"dashboard {command!r}", "no answer") from None
         except OSError as exc:
             raise DeviceConnectionError(self.name, f"dashboard {command!r}", str(exc)) from None

@@ -15,7 +15,8 @@ The returned table is not connected yet: use it as a context manager or call ``c
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 from drivers.rotary_table._gcs import GcsTable
 from drivers.rotary_table._interface import RotaryTable, TableFault, TableState

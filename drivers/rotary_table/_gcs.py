@@ -98,7 +98,7 @@ class GcsTable:
             finally:
                 self._serial = None
 
-    def __enter__(self) -> "GcsTable":
+    def __enter__(self) -> GcsTable:
         self.connect()
         return self
 
@@ -148,13 +148,15 @@ class GcsTable:
             return lines
         got = b"".join(line.encode() + b" \n" for line in lines) + partial
         if got:
-            raise ProtocolError(self.name, operation, f"answer cut short (no final LF within {self.timeout} s): {got!r}")
+            raise ProtocolError(
+                self.name, operation, f"answer cut short (no final LF within {self.timeout} s): {got!r}"
+            )
         raise DeviceTimeout(self.name, operation, f"no answer within {self.timeout} s")
 
     def _query(self, line: str, pattern: str | None = None) -> list[str]:
         """Send a query, return its lines (each matching ``pattern`` if given); bounded retries."""
         last: DeviceError | None = None
-        for attempt in range(self.retries + 1):
+        for _attempt in range(self.retries + 1):
             self._send(line, line)
             try:
                 lines = self._read_answer(line)

@@ -21,7 +21,8 @@ from __future__ import annotations
 import logging
 import math
 import time
-from typing import Any, Callable, Mapping
+from collections.abc import Callable, Mapping
+from typing import Any
 
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOException
@@ -95,14 +96,14 @@ class ModbusTable:
 
     # ----------------------------------------------------------------------------- construction
     @classmethod
-    def tcp(cls, name: str, host: str, port: int = 502, **kwargs: Any) -> "ModbusTable":
+    def tcp(cls, name: str, host: str, port: int = 502, **kwargs: Any) -> ModbusTable:
         timeout = float(kwargs.get("timeout", 0.5))
         return cls(name, lambda trace: ModbusTcpClient(host, port=int(port), timeout=timeout, retries=0,
                                                        reconnect_delay=0, trace_packet=trace),
                    f"modbus tcp {host}:{port}", **kwargs)
 
     @classmethod
-    def rtu(cls, name: str, port: str, baudrate: int = 115200, **kwargs: Any) -> "ModbusTable":
+    def rtu(cls, name: str, port: str, baudrate: int = 115200, **kwargs: Any) -> ModbusTable:
         timeout = float(kwargs.get("timeout", 0.5))
         return cls(name, lambda trace: ModbusSerialClient(port, baudrate=int(baudrate), timeout=timeout, retries=0,
                                                           reconnect_delay=0, trace_packet=trace),
@@ -137,7 +138,7 @@ class ModbusTable:
             self._client.close()
             self._client = None
 
-    def __enter__(self) -> "ModbusTable":
+    def __enter__(self) -> ModbusTable:
         self.connect()
         return self
 
@@ -296,7 +297,9 @@ class ModbusTable:
             status = self._status()
             if status >> bits.alarm & 1 or status >> bits.drive_fault & 1:
                 alarm = self._read(self.map.alarm, 1)[0]
-                raise TableFault(self.name, operation, f"drive alarm 0x{alarm:04x}: {self.map.alarm_bits.describe(alarm)}")
+                raise TableFault(
+                    self.name, operation, f"drive alarm 0x{alarm:04x}: {self.map.alarm_bits.describe(alarm)}"
+                )
             if done(status):
                 return
             if time.monotonic() > deadline:

@@ -12,8 +12,9 @@ twin read them from the same configuration, and a test runs both on a non-defaul
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field, fields
-from typing import Any, Literal, Mapping
+from typing import Any, Literal
 
 from drivers._config import checked_fields
 
@@ -131,7 +132,7 @@ class RegisterMap:
 
     # ------------------------------------------------------------------------ configuration
     @classmethod
-    def from_config(cls, data: Mapping[str, Any] | "RegisterMap" | None) -> "RegisterMap":
+    def from_config(cls, data: Mapping[str, Any] | RegisterMap | None) -> RegisterMap:
         """Build from a mapping (station YAML); unknown keys are an error, nested groups may be partial."""
         if isinstance(data, RegisterMap):
             return data

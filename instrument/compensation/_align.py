@@ -50,7 +50,7 @@ class GroupAlignment:
         }
 
     @classmethod
-    def from_dict(cls, d: dict) -> "GroupAlignment":
+    def from_dict(cls, d: dict) -> GroupAlignment:
         interval = d["interval"]
         return cls(
             int(d["reference_group"]),
@@ -59,9 +59,9 @@ class GroupAlignment:
         )
 
     @classmethod
-    def identity(cls, groups=(0,)) -> "GroupAlignment":
+    def identity(cls, groups=(0,)) -> GroupAlignment:
         groups = sorted({int(g) for g in groups})
-        return cls(groups[0], {g: 0.0 for g in groups}, None)
+        return cls(groups[0], dict.fromkeys(groups, 0.0), None)
 
 
 def stable_interval(curve, x_points: np.ndarray, window_points: int) -> tuple[float, float]:

@@ -22,7 +22,7 @@ class ZeroCurve:
         return {"kind": self.kind}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "ZeroCurve":
+    def from_dict(cls, d: dict) -> ZeroCurve:
         return cls()
 
 
@@ -44,7 +44,7 @@ class PolynomialCurve:
                 "coefficients": self.coefficients.tolist()}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "PolynomialCurve":
+    def from_dict(cls, d: dict) -> PolynomialCurve:
         return cls(float(d["center"]), float(d["half_span"]), np.asarray(d["coefficients"], float))
 
 
@@ -83,7 +83,9 @@ class GaussianProcessCurve:
 
     def predict(self, x):
         x = np.asarray(x, float)
-        k = self.signal_variance * np.exp(-0.5 * ((x.ravel()[:, None] - self.x_train[None, :]) / self.length_scale) ** 2)
+        k = self.signal_variance * np.exp(
+            -0.5 * ((x.ravel()[:, None] - self.x_train[None, :]) / self.length_scale) ** 2
+        )
         return (np.polyval(self.trend, x.ravel()) + k @ self.alpha).reshape(x.shape)
 
     def to_dict(self) -> dict:
@@ -92,7 +94,7 @@ class GaussianProcessCurve:
                 "length_scale": self.length_scale, "noise_variance": self.noise_variance}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "GaussianProcessCurve":
+    def from_dict(cls, d: dict) -> GaussianProcessCurve:
         return cls(np.asarray(d["trend"], float), np.asarray(d["x_train"], float), np.asarray(d["alpha"], float),
                    float(d["signal_variance"]), float(d["length_scale"]), float(d["noise_variance"]))
 

@@ -53,7 +53,7 @@ class SumCurve:
         return {"kind": self.kind, "base": self.base.to_dict(), "residual": self.residual.to_dict()}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "SumCurve":
+    def from_dict(cls, d: dict) -> SumCurve:
         return cls(curve_from_dict(d["base"]), curve_from_dict(d["residual"]))
 
 
@@ -103,7 +103,7 @@ class FittedModel:
         }
 
     @classmethod
-    def from_dict(cls, d: dict) -> "FittedModel":
+    def from_dict(cls, d: dict) -> FittedModel:
         return cls(str(d["method"]), curve_from_dict(d["curve"]), GroupAlignment.from_dict(d["alignment"]),
                    (float(d["validity"][0]), float(d["validity"][1])), dict(d.get("details", {})))
 

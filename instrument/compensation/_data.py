@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from typing import Callable, Mapping
 
 import numpy as np
 
@@ -81,7 +81,7 @@ class CalibrationData:
         """Measurement error, measured − reference."""
         return self.measured - self.reference
 
-    def subset(self, mask: np.ndarray) -> "CalibrationData":
+    def subset(self, mask: np.ndarray) -> CalibrationData:
         return CalibrationData(
             self.component, self.measured[mask], self.reference[mask], self.group[mask], self.point[mask]
         )

@@ -40,7 +40,7 @@ class EsnHyperparameters:
         }
 
     @classmethod
-    def from_dict(cls, d: dict) -> "EsnHyperparameters":
+    def from_dict(cls, d: dict) -> EsnHyperparameters:
         return cls(int(d["reservoir_size"]), float(d["spectral_radius"]), float(d["leak_rate"]),
                    float(d["input_scaling"]), float(d["ridge"]))
 
@@ -159,7 +159,7 @@ class EsnCurve:
         }
 
     @classmethod
-    def from_dict(cls, d: dict) -> "EsnCurve":
+    def from_dict(cls, d: dict) -> EsnCurve:
         reservoir = Reservoir(np.asarray(d["w_in"], float), np.asarray(d["reservoir_rows"], int),
                               np.asarray(d["reservoir_cols"], int), np.asarray(d["reservoir_values"], float))
         return cls(EsnHyperparameters.from_dict(d["hyper"]), reservoir, float(d["x_lo"]), float(d["x_hi"]),

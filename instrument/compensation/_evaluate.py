@@ -80,7 +80,9 @@ class EvaluationTable:
                           f"{r.end_rms * factor:.3f}", f"{r.noise_floor * factor:.3f}", f"{r.ratio_to_floor:.2f}",
                           str(r.n_heldout)))
         widths = [max(len(h), *(len(l[i]) for l in lines)) if lines else len(h) for i, h in enumerate(header)]
-        fmt = lambda cells: "  ".join(c.ljust(wd) if i < 4 else c.rjust(wd) for i, (c, wd) in enumerate(zip(cells, widths)))
+        fmt = lambda cells: "  ".join(
+            c.ljust(wd) if i < 4 else c.rjust(wd) for i, (c, wd) in enumerate(zip(cells, widths))
+        )
         out = [fmt(header), fmt(["-" * wd for wd in widths])]
         out += [fmt(l) for l in lines]
         return "\n".join(out)
@@ -89,7 +91,7 @@ class EvaluationTable:
         return {"rows": [r.to_dict() for r in self.rows]}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "EvaluationTable":
+    def from_dict(cls, d: dict) -> EvaluationTable:
         return cls(tuple(EvaluationRow(**{**r, "n_heldout": int(r["n_heldout"])}) for r in d["rows"]))
 
 

@@ -12,8 +12,8 @@ import hashlib
 import json
 import math
 import warnings
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Mapping
 
 import numpy as np
 
@@ -57,7 +57,7 @@ class Provenance:
                 "temperature_c": self.temperature_c}
 
     @classmethod
-    def from_dict(cls, d: dict) -> "Provenance":
+    def from_dict(cls, d: dict) -> Provenance:
         t = d.get("temperature_c")
         return cls(str(d["run_id"]), tuple(dict(r) for r in d.get("references", [])), str(d.get("date", "")),
                    None if t is None else float(t))
@@ -104,7 +104,9 @@ class CalibrationRecord:
     def __post_init__(self):
         bad = set(self.models) - set(COMPONENTS)
         if bad:
-            raise CalibrationRecordError(f"calibration record: unknown component(s) {sorted(bad)}; expected {COMPONENTS}")
+            raise CalibrationRecordError(
+                f"calibration record: unknown component(s) {sorted(bad)}; expected {COMPONENTS}"
+            )
         validity = {c: tuple(float(v) for v in self.validity.get(c, m.validity)) for c, m in self.models.items()}
         object.__setattr__(self, "validity", validity)
         object.__setattr__(self, "models", dict(self.models))
@@ -132,7 +134,7 @@ class CalibrationRecord:
         return json.dumps(payload, sort_keys=True, indent=indent, allow_nan=False)
 
     @classmethod
-    def from_json(cls, text: str) -> "CalibrationRecord":
+    def from_json(cls, text: str) -> CalibrationRecord:
         try:
             payload = json.loads(text)
         except (TypeError, ValueError) as exc:

@@ -50,7 +50,9 @@ class SmoothingFit:
     criterion_value: float
 
 
-def smooth(u: np.ndarray, y: np.ndarray, w: np.ndarray, criterion: str = "gcv", lam: float | None = None) -> SmoothingFit:
+def smooth(
+    u: np.ndarray, y: np.ndarray, w: np.ndarray, criterion: str = "gcv", lam: float | None = None
+) -> SmoothingFit:
     """Weighted cubic smoothing spline values at sorted, distinct abscissae ``u``.
 
     Parameters
@@ -139,7 +141,7 @@ class SplineCurve:
         }
 
     @classmethod
-    def from_dict(cls, d: dict) -> "SplineCurve":
+    def from_dict(cls, d: dict) -> SplineCurve:
         return cls(
             float(d["center"]),
             float(d["half_span"]),

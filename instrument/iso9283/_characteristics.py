@@ -8,8 +8,8 @@ angles are wrapped into (−π, π].
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 

@@ -14,7 +14,7 @@ Derived here from the geometry (the printed eq. 14 has garbled subscripts):
 
 from __future__ import annotations
 
-from typing import Mapping
+from collections.abc import Mapping
 
 import numpy as np
 
@@ -25,7 +25,11 @@ from instrument.pose._rotation import Pose, euler_to_matrix
 
 
 def _as_crosses(measurements: Mapping[str, object], geometry: Geometry) -> dict[str, ScreenCross]:
-    if isinstance(measurements, Mapping) and measurements and all(isinstance(m, ScreenCross) for m in measurements.values()):
+    if (
+        isinstance(measurements, Mapping)
+        and measurements
+        and all(isinstance(m, ScreenCross) for m in measurements.values())
+    ):
         if set(measurements) != set(SCREEN_NAMES):
             return observe_crosses(measurements, geometry)  # raises the missing-screen error
         return dict(measurements)
@@ -88,5 +92,7 @@ def small_motion_pose(measurements: Mapping[str, object], geometry: Geometry, *,
         translation = np.array([np.mean(estimates[i]) for i in range(3)])
     else:
         design = np.array(rows)
-        translation = np.linalg.solve(design.T @ design, design.T @ np.array(rhs))  # well conditioned: rows ≈ unit vectors
+        translation = np.linalg.solve(
+            design.T @ design, design.T @ np.array(rhs)
+        )  # well conditioned: rows ≈ unit vectors
     return Pose(translation, rotation)

@@ -43,7 +43,7 @@ class InconsistentCrossesError(PoseError):
         return (_rebuild_inconsistent, (str(self), self.residual_rms, self.threshold))
 
 
-def _rebuild_inconsistent(message: str, residual_rms: float, threshold: float) -> "InconsistentCrossesError":
+def _rebuild_inconsistent(message: str, residual_rms: float, threshold: float) -> InconsistentCrossesError:
     return InconsistentCrossesError(message, residual_rms=residual_rms, threshold=threshold)
 
 

@@ -23,8 +23,9 @@ in px⁻², k2 in px⁻⁴) and c = ``center_px``. The homography then maps p to
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -133,7 +134,7 @@ class Screen:
 
     # ------------------------------------------------------------------ (de)serialisation
     @classmethod
-    def from_dict(cls, name: str, data: Mapping[str, Any]) -> "Screen":
+    def from_dict(cls, name: str, data: Mapping[str, Any]) -> Screen:
         where = f"screens.{name}"
         if not isinstance(data, Mapping):
             raise GeometryError(f"{where}: expected a mapping, got {type(data).__name__}")
@@ -183,7 +184,9 @@ class Screen:
                 raise GeometryError(f"{where}.distortion: expected a mapping with k1, k2, center_px")
             unknown = set(dist) - {"k1", "k2", "center_px"}
             if unknown:
-                raise GeometryError(f"{where}.distortion: unknown field(s) {sorted(unknown)}; expected k1, k2, center_px")
+                raise GeometryError(
+                    f"{where}.distortion: unknown field(s) {sorted(unknown)}; expected k1, k2, center_px"
+                )
             if "center_px" not in dist:
                 raise GeometryError(f"{where}.distortion.center_px: missing")
             k = {}
@@ -200,7 +203,9 @@ class Screen:
         if data.get("size_px") is not None:
             size_array = _vector(data["size_px"], 2, f"{where}.size_px")
             if np.any(size_array < 1) or np.any(size_array != np.round(size_array)):
-                raise GeometryError(f"{where}.size_px: expected [width, height] in whole pixels ≥ 1, got {data['size_px']!r}")
+                raise GeometryError(
+                    f"{where}.size_px: expected [width, height] in whole pixels ≥ 1, got {data['size_px']!r}"
+                )
             size = (int(size_array[0]), int(size_array[1]))
         return cls(name, origin, u, v, homography, distortion, size)
 
@@ -229,7 +234,7 @@ class Geometry:
     screens: Mapping[str, Screen]
 
     @classmethod
-    def from_dict(cls, data: Mapping[str, Any]) -> "Geometry":
+    def from_dict(cls, data: Mapping[str, Any]) -> Geometry:
         """Validate and load the station file's ``geometry`` mapping; errors name the field."""
         if not isinstance(data, Mapping) or "screens" not in data:
             raise GeometryError("screens: missing (geometry must be a mapping with a 'screens' entry)")

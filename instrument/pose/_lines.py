@@ -8,8 +8,8 @@ normal R·e_j, j the third axis, and its stripe runs (nominally) along M's axis 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Mapping
 
 import numpy as np
 
@@ -187,11 +187,14 @@ def observe_cross(measurement, screen: Screen) -> ScreenCross:
 def observe_crosses(measurements: Mapping[str, object], geometry: Geometry) -> dict[str, ScreenCross]:
     """``observe_cross`` for the three screens; a missing screen raises ``MissingScreenError``."""
     if not isinstance(measurements, Mapping):
-        raise PoseError(f"measurements: expected a mapping {{'x': ..., 'y': ..., 'z': ...}}, got {type(measurements).__name__}")
+        raise PoseError(
+            f"measurements: expected a mapping {{'x': ..., 'y': ..., 'z': ...}}, got {type(measurements).__name__}"
+        )
     missing = [name for name in SCREEN_NAMES if measurements.get(name) is None]
     if missing:
         raise MissingScreenError(
-            f"no cross measurement for screen(s) {', '.join(missing)} (got {', '.join(sorted(map(str, measurements))) or 'none'}); "
+            f"no cross measurement for screen(s) {', '.join(missing)} "
+            f"(got {', '.join(sorted(map(str, measurements))) or 'none'}); "
             "all three crosses are needed for a 6-DOF pose"
         )
     unknown = set(measurements) - set(SCREEN_NAMES)

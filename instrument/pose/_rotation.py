@@ -11,7 +11,6 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-
 _EYE = np.eye(3)
 
 
@@ -92,16 +91,16 @@ class Pose:
 
     # ------------------------------------------------------------------ constructors
     @classmethod
-    def identity(cls) -> "Pose":
+    def identity(cls) -> Pose:
         return cls(np.zeros(3), np.eye(3))
 
     @classmethod
-    def from_euler(cls, translation, euler) -> "Pose":
+    def from_euler(cls, translation, euler) -> Pose:
         alpha, theta, gamma = (float(a) for a in euler)
         return cls(translation, euler_to_matrix(alpha, theta, gamma))
 
     @classmethod
-    def from_iso(cls, vector) -> "Pose":
+    def from_iso(cls, vector) -> Pose:
         """From ISO 9283's [x, y, z, a, b, c] (m, rad), (a, b, c) = (α, θ, γ)."""
         v = np.asarray(vector, dtype=float).reshape(-1)
         if v.shape != (6,):
@@ -109,7 +108,7 @@ class Pose:
         return cls.from_euler(v[:3], v[3:])
 
     @classmethod
-    def from_rotvec_pose(cls, vector) -> "Pose":
+    def from_rotvec_pose(cls, vector) -> Pose:
         """From [x, y, z, rx, ry, rz] with a rotation vector (UR / station file convention)."""
         v = np.asarray(vector, dtype=float).reshape(-1)
         if v.shape != (6,) or not np.all(np.isfinite(v)):
@@ -117,7 +116,7 @@ class Pose:
         return cls(v[:3], Rotation.from_rotvec(v[3:]).as_matrix())
 
     @classmethod
-    def from_matrix(cls, matrix) -> "Pose":
+    def from_matrix(cls, matrix) -> Pose:
         m = np.asarray(matrix, dtype=float)
         if m.shape != (4, 4) or not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0]):
             raise ValueError(f"Pose.from_matrix: expected a 4×4 homogeneous transform, got shape {m.shape}")
@@ -144,13 +143,13 @@ class Pose:
         return np.concatenate([self.translation, Rotation.from_matrix(self.rotation).as_rotvec()])
 
     # ------------------------------------------------------------------ algebra
-    def compose(self, other: "Pose") -> "Pose":
+    def compose(self, other: Pose) -> Pose:
         """self ∘ other: if self is T_a_b and other T_b_c, the result is T_a_c."""
         return Pose(self.rotation @ other.translation + self.translation, self.rotation @ other.rotation)
 
     __matmul__ = compose
 
-    def inverse(self) -> "Pose":
+    def inverse(self) -> Pose:
         rt = self.rotation.T
         return Pose(-rt @ self.translation, rt)
 
@@ -158,7 +157,7 @@ class Pose:
         """Map points (…, 3) from the moving frame to the reference frame."""
         return np.asarray(points, dtype=float) @ self.rotation.T + self.translation
 
-    def rotation_angle_to(self, other: "Pose") -> float:
+    def rotation_angle_to(self, other: Pose) -> float:
         """Angle of the relative rotation between two poses, rad."""
         # Via the rotation vector: arccos of the trace loses precision below ~1e-8 rad.
         return float(Rotation.from_matrix(self.rotation.T @ other.rotation).magnitude())

@@ -13,8 +13,8 @@ by the observed segment length gives the line angles their proper weight.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Mapping
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -121,7 +121,9 @@ class _StripeProblem:
         jac = np.empty((len(sine), 6))
         jac[:, :3] = -normals / sine[:, None]
         # ∂r/∂m = (Q − t)/s − (m·(Q − t))/s³ · ((m·u)·u + (m·v)·v)
-        d_normal = offsets / sine[:, None] - (residuals / (sine * sine))[:, None] * (mu[:, None] * self.u + mv[:, None] * self.v)
+        d_normal = offsets / sine[:, None] - (residuals / (sine * sine))[:, None] * (
+            mu[:, None] * self.u + mv[:, None] * self.v
+        )
         jac[:, 3] = self.alpha_signs * (d_normal * rotation_t[self.alpha_axes]).sum(axis=1)
         m0, m1, m2 = normals[:, 0], normals[:, 1], normals[:, 2]
         n0, n1, n2 = d_normal[:, 0], d_normal[:, 1], d_normal[:, 2]

@@ -26,7 +26,9 @@ def _fit_pixel_line(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
 
 def _stripe_pixels(line: ScreenLine, center: np.ndarray, screen: Screen, half_length: float, rng, noise_px: float):
     # One sample per ~pixel along the stripe, like one IGCF section per image column/row.
-    ends = screen.screen_to_pixels(np.array([center - half_length * line.direction, center + half_length * line.direction]))
+    ends = screen.screen_to_pixels(
+        np.array([center - half_length * line.direction, center + half_length * line.direction])
+    )
     count = max(int(np.linalg.norm(ends[1] - ends[0])), 8)
     steps = np.linspace(-half_length, half_length, count)
     pixels = screen.screen_to_pixels(center + steps[:, None] * line.direction)

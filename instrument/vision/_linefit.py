@@ -107,7 +107,7 @@ def fit_line_bisquare(points, *, independent=0, tuning=BISQUARE_TUNING, tol=1e-7
     weights = np.ones_like(u)
     a, b = _weighted_line(u, v, weights)
     iterations, converged = 0, False
-    for iterations in range(1, max_iter + 1):
+    for iterations in range(1, max_iter + 1):  # noqa: B007 (the count is returned)
         r = v - (a + b * u)
         mad = _median(np.abs(r))  # about the fit, as robustfit: ≥ half the points keep weight
         scale = max(mad / MAD_TO_SIGMA, 1e-12 * (1.0 + np.abs(v).max()))

@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Mapping
+from typing import Any
 
 from drivers._config import checked_fields
 from drivers.interferometer._layout import FrameLayout
@@ -53,7 +54,7 @@ class InterferometerTwinConfig:
             raise ValueError(f"interferometer twin: lateral_range must be > 0, got {self.lateral_range!r}")
 
     @classmethod
-    def from_dict(cls, data: Mapping[str, Any] | "InterferometerTwinConfig" | None) -> "InterferometerTwinConfig":
+    def from_dict(cls, data: Mapping[str, Any] | InterferometerTwinConfig | None) -> InterferometerTwinConfig:
         if isinstance(data, cls):
             return data
         return cls(**checked_fields(cls, data, "interferometer twin config"))

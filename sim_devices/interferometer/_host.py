@@ -3,7 +3,8 @@
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 
@@ -79,7 +80,7 @@ class InterferometerTwin:
             self.head.close()
         self.device = self.head = None
 
-    def __enter__(self) -> "InterferometerTwin":
+    def __enter__(self) -> InterferometerTwin:
         self.start()
         return self
 

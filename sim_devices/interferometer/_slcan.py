@@ -23,7 +23,7 @@ import tempfile
 import threading
 import time
 import tty
-from typing import Callable
+from collections.abc import Callable
 
 CommandSink = Callable[[int, bytes], None]
 

@@ -14,7 +14,7 @@ import select
 import socket
 import threading
 import time
-from typing import Callable
+from collections.abc import Callable
 
 CommandSink = Callable[[int, bytes], None]
 
@@ -148,7 +148,7 @@ class SocketcandServer:
     def _read(self, client: _Client) -> None:
         try:
             data = client.sock.recv(4096)
-        except (OSError, socket.timeout):
+        except (TimeoutError, OSError):
             data = b""
         if not data:
             self._drop(client)

@@ -18,7 +18,7 @@ import math
 import os
 import select
 import threading
-from typing import Callable
+from collections.abc import Callable
 
 from sim_devices._pty import PtyRelay, line_framer
 from sim_devices.faults import FaultKind, FaultPlan

@@ -14,7 +14,8 @@ from __future__ import annotations
 
 import threading
 import time
-from typing import Any, Callable, Mapping
+from collections.abc import Callable, Mapping
+from typing import Any
 
 from drivers.rotary_table._registers import RegisterMap
 from sim_devices.faults import FaultPlan
@@ -50,7 +51,9 @@ class RotaryTableTwin:
         config = dict(config or {})
         unknown = set(config) - _CONFIG_KEYS
         if unknown:
-            raise ValueError(f"rotary table twin: unknown config key(s) {sorted(unknown)}; known: {sorted(_CONFIG_KEYS)}")
+            raise ValueError(
+                f"rotary table twin: unknown config key(s) {sorted(unknown)}; known: {sorted(_CONFIG_KEYS)}"
+            )
         self.world = world
         self.transports = tuple(config.get("transports", TRANSPORTS))
         bad = set(self.transports) - set(TRANSPORTS)
@@ -143,7 +146,7 @@ class RotaryTableTwin:
             "reported_counts": self.physics.read_counts(),
             "counts_per_rev": self.table_config.counts_per_rev,
             "error_bound": self.table_config.reported_error_bound(),
-            **{k: v for k, v in status.items()},
+            **dict(status.items()),
         }
 
     def control(self, command: str, **kwargs: Any) -> Any:

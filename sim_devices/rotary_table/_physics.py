@@ -20,8 +20,9 @@ from __future__ import annotations
 import math
 import threading
 import time
+from collections.abc import Callable, Mapping
 from dataclasses import asdict, dataclass
-from typing import Any, Callable, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -67,7 +68,7 @@ class TableConfig:
         return periodic + self.backlash + quantum / 2.0 + 3.0 * self.noise_std
 
     @classmethod
-    def from_dict(cls, data: Mapping[str, Any] | "TableConfig" | None) -> "TableConfig":
+    def from_dict(cls, data: Mapping[str, Any] | TableConfig | None) -> TableConfig:
         if isinstance(data, TableConfig):
             return data
         return cls(**checked_fields(cls, data, "table config"))

@@ -34,7 +34,7 @@ class TcpFaultProxy:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._accept_loop, name=name, daemon=True)
 
-    def start(self) -> "TcpFaultProxy":
+    def start(self) -> TcpFaultProxy:
         self._thread.start()
         return self
 

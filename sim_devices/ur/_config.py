@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -65,7 +66,7 @@ class URTwinConfig:
     stop_deceleration: float = 10.0
 
     @classmethod
-    def from_dict(cls, data: Mapping[str, Any] | None) -> "URTwinConfig":
+    def from_dict(cls, data: Mapping[str, Any] | None) -> URTwinConfig:
         data = checked_fields(cls, data, "UR twin config")
         if "version" in data:
             data["version"] = tuple(int(v) for v in data["version"])

@@ -26,7 +26,8 @@ from __future__ import annotations
 import threading
 import time
 import zlib
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -264,7 +265,9 @@ class URController:
                 self._mid_move_faults(motion, t)
                 if self.motion is motion and t >= motion.t_end:
                     self._finish_motion(motion, t)
-                elif self.motion is motion and time.monotonic() - self._last_publish >= self.config.world_publish_period:
+                elif (
+                    self.motion is motion and time.monotonic() - self._last_publish >= self.config.world_publish_period
+                ):
                     self._last_publish = time.monotonic()
                     self.world.set_flange_pose(kin.flange_from_tcp(self.tcp_pose, self.tcp_offset), settled=False,
                                                source="robot")

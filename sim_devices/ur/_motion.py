@@ -34,7 +34,7 @@ class Profile:
     t_dec: float
 
     @classmethod
-    def rest_to_rest(cls, t0: float, length: float, speed: float, accel: float) -> "Profile":
+    def rest_to_rest(cls, t0: float, length: float, speed: float, accel: float) -> Profile:
         length = max(length, 0.0)
         speed, accel = max(speed, 1e-9), max(accel, 1e-9)
         if length * accel < speed * speed:  # triangular: never reaches the speed
@@ -46,7 +46,7 @@ class Profile:
         return cls(t0, 0.0, length, 0.0, speed, accel, accel, t_acc, t_flat, t_acc)
 
     @classmethod
-    def stopping(cls, t0: float, s0: float, v0: float, decel: float) -> "Profile":
+    def stopping(cls, t0: float, s0: float, v0: float, decel: float) -> Profile:
         decel = max(decel, 1e-9)
         t_dec = max(v0, 0.0) / decel
         return cls(t0, s0, 0.5 * max(v0, 0.0) * t_dec, v0, v0, decel, decel, 0.0, 0.0, t_dec)

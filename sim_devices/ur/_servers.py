@@ -12,7 +12,7 @@ import socket
 import struct
 import threading
 import time
-from typing import Callable
+from collections.abc import Callable
 
 from sim_devices.faults import FaultKind
 from sim_devices.ur._controller import (
@@ -31,7 +31,7 @@ V, v, O, I, S, P, U, M = 86, 118, 79, 73, 83, 80, 85, 77  # RTDE package types
 class TcpServer:
     """A listening socket whose connections each run ``handler(sock, server)`` in a thread."""
 
-    def __init__(self, host: str, port: int, handler: Callable[[socket.socket, "TcpServer"], None], name: str) -> None:
+    def __init__(self, host: str, port: int, handler: Callable[[socket.socket, TcpServer], None], name: str) -> None:
         self.host, self.port, self.name = host, port, name
         self.handler = handler
         self.running = threading.Event()
@@ -56,7 +56,7 @@ class TcpServer:
         while self.running.is_set():
             try:
                 sock, _ = self._listener.accept()
-            except socket.timeout:
+            except TimeoutError:
                 continue
             except OSError:
                 break
@@ -133,7 +133,7 @@ DASHBOARD_FIXED_REPLIES = {
 class RTDEHandler:
     """One RTDE session: version handshake, recipes, start/pause, streaming, input packages."""
 
-    def __init__(self, controller: URController, registry: "InputOwnership") -> None:
+    def __init__(self, controller: URController, registry: InputOwnership) -> None:
         self.c = controller
         self.registry = registry
 
@@ -330,7 +330,11 @@ class DashboardHandler:
             if c.safety_bits & SAFETY_BIT_PROTECTIVE:
                 c.clear_safety()
                 return "Protective stop releasing", False
-            return "Cannot unlock protective stop until 5s after occurrence. Always inspect cause of protective stop before unlocking", False
+            return (
+                "Cannot unlock protective stop until 5s after occurrence. "
+                "Always inspect cause of protective stop before unlocking",
+                False,
+            )
         if lower in DASHBOARD_FIXED_REPLIES:
             return DASHBOARD_FIXED_REPLIES[lower], False
         if lower.startswith("load "):

@@ -9,7 +9,8 @@ than the ur_rtde client (the client's constructors hold the GIL while they wait)
 from __future__ import annotations
 
 import ipaddress
-from typing import Any, Mapping
+from collections.abc import Mapping
+from typing import Any
 
 import numpy as np
 
