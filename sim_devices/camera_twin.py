@@ -20,7 +20,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from drivers._errors import DeviceConnectionError, DeviceTimeout
+from drivers import DeviceConnectionError, DeviceTimeout
 from drivers.camera import Frame, GrabFailed, Roi
 from sim_devices.faults import FaultKind, FaultPlan
 from sim_devices.optics import AXIS_NAMES, OpticalBench

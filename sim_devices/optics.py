@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers._config import checked_fields
+from sim_devices._config import checked_fields
 from sim_devices._transforms import rotvec_to_matrix
 
 AXIS_NAMES = ("x", "y", "z")
