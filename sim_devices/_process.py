@@ -15,6 +15,8 @@ import importlib
 import multiprocessing
 import threading
 import traceback
+from multiprocessing.connection import Connection
+from multiprocessing.context import SpawnProcess
 from typing import Any
 
 
@@ -22,7 +24,7 @@ class TwinProcessError(RuntimeError):
     """The twin process failed to start, died, or a control call failed inside it."""
 
 
-def _child_main(factory_path: str, kwargs: dict[str, Any], conn) -> None:
+def _child_main(factory_path: str, kwargs: dict[str, Any], conn: Connection) -> None:
     host = None
     try:
         module_name, _, attr = factory_path.partition(":")
@@ -81,15 +83,16 @@ class TwinProcess:
         self.start_timeout = start_timeout
         self.call_timeout = call_timeout
         self.endpoints: dict[str, Any] = {}
-        self._process = None
-        self._conn = None
+        self._process: SpawnProcess | None = None
+        self._conn: Connection | None = None
         self._lock = threading.Lock()
 
     def start(self) -> dict[str, Any]:
         ctx = multiprocessing.get_context("spawn")
         parent, child = ctx.Pipe()
-        self._process = ctx.Process(target=_child_main, args=(self.factory, self.kwargs, child), daemon=True)
-        self._process.start()
+        process = ctx.Process(target=_child_main, args=(self.factory, self.kwargs, child), daemon=True)
+        self._process = process
+        process.start()
         child.close()
         self._conn = parent
         if not parent.poll(self.start_timeout):

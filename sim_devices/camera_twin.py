@@ -211,7 +211,7 @@ class SimCamera:
 
     def grab(self, timeout: float = 2.0) -> Frame:
         """Trigger and retrieve, retrying incomplete buffers and timeouts a bounded number of times."""
-        last: Exception | None = None
+        last: GrabFailed | DeviceTimeout | None = None
         for _attempt in range(self.retries + 1):
             self.trigger()
             try:

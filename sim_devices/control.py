@@ -47,7 +47,8 @@ class ControlServer:
 
         self._handler = handler
         self._server = _Server((host, port), _Handler)
-        self.address = self._server.server_address[:2]
+        bound_host, bound_port = self._server.socket.getsockname()[:2]
+        self.address: tuple[str, int] = (str(bound_host), int(bound_port))
         self._thread = threading.Thread(target=self._server.serve_forever, name="cell-control", daemon=True)
 
     def start(self) -> tuple[str, int]:
