@@ -6,7 +6,7 @@ from a factory, starts it, sends back its endpoints, then serves control calls u
 (or until the parent goes away). It only ever stops the process it started.
 
 A host object has ``start() -> dict`` (endpoints), ``stop() -> None`` and
-``control(command: str, **kwargs) -> Any`` (the twin's control API: arm faults, read truth ...).
+``control(command: str, /, **kwargs) -> Any`` (the twin's control API: arm faults, read truth ...).
 """
 
 from __future__ import annotations
@@ -109,8 +109,12 @@ class TwinProcess:
         self.endpoints = reply["endpoints"]
         return self.endpoints
 
-    def call(self, command: str, timeout: float | None = None, **kwargs: Any) -> Any:
-        """Run ``host.control(command, **kwargs)`` in the child and return its result."""
+    def call(self, command: str, /, timeout: float | None = None, **kwargs: Any) -> Any:
+        """Run ``host.control(command, **kwargs)`` in the child and return its result.
+
+        ``command`` is positional-only, so ``kwargs`` may hold a ``command`` of their own (the
+        cell's ``device`` command forwards one to a twin). ``timeout`` (s) overrides ``call_timeout``.
+        """
         with self._lock:
             if self._conn is None or self._process is None or not self._process.is_alive():
                 raise TwinProcessError(f"twin {self.factory} is not running")

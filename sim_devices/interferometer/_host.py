@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from sim_devices.control import dispatch
 from sim_devices.faults import FaultKind, FaultPlan
 from sim_devices.interferometer._config import InterferometerTwinConfig
 from sim_devices.interferometer._device import InterferometerDevice
@@ -129,17 +130,14 @@ class InterferometerTwin:
             return {"adapter": "slcan", "port": self.endpoints["slcan"]["port"]}
         raise ValueError(f"interferometer twin: transport {transport!r} is not running")
 
-    def control(self, command: str, **kwargs: Any) -> Any:
+    def control(self, command: str, /, **kwargs: Any) -> Any:
         """The host API for ``TwinProcess``: each command is the method of that name (``endpoints``:
         the attribute)."""
         commands: dict[str, Callable[..., Any]] = {
             "align": self.align, "arm": self.arm, "clear": self.clear, "fired": self.fired, "truth": self.truth,
             "stats": self.stats, "endpoints": lambda: self.endpoints, "station_entry": self.station_entry,
         }
-        if command not in commands:
-            raise ValueError(f"interferometer twin: unknown control command {command!r}; expected one of "
-                             f"{', '.join(sorted(commands))}")
-        return commands[command](**kwargs)
+        return dispatch(commands, command, kwargs, "interferometer twin")
 
     def _running(self) -> tuple[InterferometerHead, InterferometerDevice]:
         if self.head is None or self.device is None:
@@ -167,15 +165,25 @@ class StandaloneInterferometerHost:
         self.twin.stop()
         self.world.truth.close()
 
-    def control(self, command: str, **kwargs: Any) -> Any:
-        if command == "set_flange_pose":
-            self.world.set_flange_pose(np.asarray(kwargs["pose"], dtype=float))
-            return self.world.opr_in_m().tolist()
-        if command == "move_opr":
-            move_opr(self.world, kwargs["delta"])
-            return self.world.opr_in_m().tolist()
-        if command == "opr_in_m":
-            return self.world.opr_in_m().tolist()
+    def set_flange_pose(self, pose: list[float] | list[list[float]]) -> list[list[float]]:
+        """Put the flange at ``pose`` (a UR pose of 6 values, or 4×4, in B); returns the OPR in M."""
+        self.world.set_flange_pose(np.asarray(pose, dtype=float))
+        return self.opr_in_m()
+
+    def move_opr(self, delta: list[float]) -> list[list[float]]:
+        """Translate the OPR by ``delta`` (metres, in M); returns the OPR in M."""
+        move_opr(self.world, delta)
+        return self.opr_in_m()
+
+    def opr_in_m(self) -> list[list[float]]:
+        return self.world.opr_in_m().tolist()
+
+    def control(self, command: str, /, **kwargs: Any) -> Any:
+        """The world commands above, then every command of ``InterferometerTwin.control``."""
+        commands: dict[str, Callable[..., Any]] = {"set_flange_pose": self.set_flange_pose,
+                                                   "move_opr": self.move_opr, "opr_in_m": self.opr_in_m}
+        if command in commands:
+            return dispatch(commands, command, kwargs, "interferometer host")
         return self.twin.control(command, **kwargs)
 
 

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from typing import Any, Literal, cast
 
 from sim_devices._config import checked_fields
+from sim_devices.control import dispatch
 from sim_devices.faults import FaultKind, FaultPlan
 from sim_devices.rotary_table._gcs import GcsTableTwin
 from sim_devices.rotary_table._modbus import ModbusTableTwin
@@ -204,7 +205,7 @@ class RotaryTableTwin:
         return {"table": self.table_config.to_dict(), "register_map": self.register_map.to_config(),
                 "transports": list(self.transports)}
 
-    def control(self, command: str, **kwargs: Any) -> Any:
+    def control(self, command: str, /, **kwargs: Any) -> Any:
         """The host API for ``TwinProcess``: ``arm`` (transport, kind, count=1, **params), ``clear``
         (transport, kinds), ``fired`` (transport), ``truth``, ``alarm`` (name), ``alarm_reset``,
         ``endpoints``, ``describe``; each is the method of that name (``alarm``: ``raise_alarm``)."""
@@ -213,10 +214,7 @@ class RotaryTableTwin:
             "alarm": self.raise_alarm, "alarm_reset": self.alarm_reset, "endpoints": lambda: dict(self.endpoints),
             "describe": self.describe,
         }
-        if command not in commands:
-            raise ValueError(f"rotary table twin: unknown control command {command!r}; expected one of "
-                             f"{sorted(commands)}")
-        return commands[command](**kwargs)
+        return dispatch(commands, command, kwargs, "rotary table twin")
 
 
 def make_host(config: Mapping[str, Any] | None = None, world: Mapping[str, Any] | None = None,
