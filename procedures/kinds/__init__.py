@@ -38,7 +38,9 @@ _REGISTERED: tuple[ProcedureKind[Any], ...] = (
     angle_calibration.KIND,
     iso9283_repeatability.KIND,
 )
-KINDS: Mapping[str, ProcedureKind[Any]] = MappingProxyType({kind.name: kind for kind in _REGISTERED})
+_KINDS: dict[str, ProcedureKind[Any]] = {kind.name: kind for kind in _REGISTERED}
+KINDS: Mapping[str, ProcedureKind[Any]] = MappingProxyType(_KINDS)
+"""Every kind by its ``procedure:`` name, in registration order (read-only)."""
 
 
 def kind_of(procedure: ProcedureBase) -> ProcedureKind[Any]:
