@@ -1,4 +1,5 @@
-"""One self-contained HTML report per run, and CSV / JSON exports. Units are converted here only."""
+"""One self-contained HTML report per run, and CSV / JSON exports. Units are converted at this edge only
+(here and in ``_report_sections``, which the procedure kinds use for their results)."""
 
 from __future__ import annotations
 
