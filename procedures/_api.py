@@ -6,7 +6,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -16,8 +16,9 @@ from procedures._errors import RunError
 from procedures._hooks import HookRunner
 from procedures._loading import load_procedure, load_station, resolve_procedure_path
 from procedures._models import HookSpec, StationFile
-from procedures._science import InstrumentScience
-from procedures._station import StationRuntime
+from procedures._run_state import PauseDecision
+from procedures._science import InstrumentScience, Science
+from procedures._station import Operator, StationRuntime
 from procedures._store import RunStore
 
 
@@ -28,13 +29,13 @@ def open_engine(
     procedure: str | Path | None = None,
     station: str | Path | None = None,
     run_id: str | None = None,
-    science: Any = None,
+    science: Science | None = None,
     devices: dict[str, Any] | None = None,
-    operator: Any = None,
-    listener: Callable[[dict], None] | None = None,
-    pause_handler: Callable[[RunEngine], str] | None = None,
+    operator: Operator | None = None,
+    listener: Callable[[dict[str, Any]], None] | None = None,
+    pause_handler: Callable[[RunEngine], PauseDecision] | None = None,
     pause_timeout_s: float = 3600.0,
-    extra_hooks: list[HookSpec] = (),
+    extra_hooks: Sequence[HookSpec] = (),
 ) -> Iterator[RunEngine]:
     """A ``RunEngine`` for a new run (``procedure`` + ``station``) or a stored one (``run_id``).
 
@@ -45,8 +46,9 @@ def open_engine(
     store = RunStore(runs_dir)
     runtime = None
     try:
+        # A custom science (a test's fake) has no geometry to judge the station's with.
         custom_science = science is not None
-        science = science if custom_science else InstrumentScience()
+        science = science if science is not None else InstrumentScience()
         if run_id is None:
             if procedure is None or station is None:
                 raise RunError("a new run needs a procedure and a station")
@@ -59,7 +61,7 @@ def open_engine(
                                 procedure_text=text, station_path=str(Path(station).resolve()))
         else:
             run = store.get_run(run_id)
-            run_id = run["id"]
+            run_id = str(run["id"])
             proc = load_procedure(run["procedure_file"] or f"run {run_id}", run["procedure_text"])
             snapshot = StationFile.model_validate(run["station"])
             if station is not None:

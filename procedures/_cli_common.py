@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import signal
@@ -10,10 +11,16 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import TYPE_CHECKING
 
+from procedures._errors import RunError
+from procedures._run_state import PauseDecision, RunState
 from procedures._store import RunStore
 
-EXIT_CODES = {"FINISHED": 0, "FAILED": 1, "ABORTED": 2, "PAUSED": 3}
+if TYPE_CHECKING:  # only for annotations: the engine's stack loads with the commands that run one
+    from procedures._engine import RunEngine
+
+EXIT_CODES = {RunState.FINISHED: 0, RunState.FAILED: 1, RunState.ABORTED: 2, RunState.PAUSED: 3}
 
 
 def add_runs_dir(parser) -> None:
@@ -94,18 +101,21 @@ class Display:
             print(f"\nset-up: {event['setup']}", file=self.stream, flush=True)
 
 
-def console_pause_handler(engine) -> str:
+_ANSWERS: dict[str, PauseDecision] = {"": "resume", "a": "abort", "q": "detach"}
+
+
+def console_pause_handler(engine: RunEngine) -> PauseDecision:
     """Ask the operator what to do with a paused run."""
     if not sys.stdin.isatty():
         return "detach"
     print("\nrun paused. [Enter] resume, [a] abort, [q] quit and leave it paused (instrument resume RUN)",
           file=sys.stderr)
     answer = input("> ").strip().lower()
-    return {"": "resume", "a": "abort", "q": "detach"}.get(answer, "detach")
+    return _ANSWERS.get(answer, "detach")
 
 
 @contextmanager
-def ctrl_c_pauses(engine) -> Iterator[None]:
+def ctrl_c_pauses(engine: RunEngine) -> Iterator[None]:
     """First Ctrl-C: pause at the next safe point. Second: abort now (KeyboardInterrupt)."""
     presses = {"count": 0}
 
@@ -135,8 +145,6 @@ def station_for(station: str | None, runs_dir: Path, seed: int) -> Iterator[str 
 
     directory = Path(runs_dir) / "sim" / time.strftime("%Y%m%d-%H%M%S")
     directory.mkdir(parents=True, exist_ok=True)
-    from procedures._errors import RunError
-
     cell = SimCell(seed=seed, directory=directory)
     try:
         cell.start()
@@ -149,7 +157,7 @@ def station_for(station: str | None, runs_dir: Path, seed: int) -> Iterator[str 
         cell.stop()
 
 
-def drive(engine, args) -> int:
+def drive(engine: RunEngine, args: argparse.Namespace) -> int:
     """Execute with the display and Ctrl-C handling; print the outcome; return the exit code."""
     with ctrl_c_pauses(engine):
         state = engine.execute()

@@ -6,7 +6,6 @@ import sys
 from pathlib import Path
 
 from procedures._cli_common import add_runs_dir, find_run, open_store
-from procedures._report import export_csv, export_json
 
 
 def register(subparsers) -> None:
@@ -21,6 +20,8 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
+    from procedures._report import export_csv, export_json  # the measurement stack loads only when needed
+
     with open_store(args) as store:
         r = find_run(store, args.run_id)
         if r is None:

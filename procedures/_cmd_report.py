@@ -5,7 +5,6 @@ from __future__ import annotations
 from pathlib import Path
 
 from procedures._cli_common import add_runs_dir, find_run, open_store
-from procedures._report import render_report
 
 
 def register(subparsers) -> None:
@@ -17,6 +16,8 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
+    from procedures._report import render_report  # the measurement stack loads only when needed
+
     with open_store(args) as store:
         r = find_run(store, args.run_id)
         if r is None:

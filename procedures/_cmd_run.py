@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 
 from procedures._cli_common import Display, add_display, add_runs_dir, console_pause_handler, drive, station_for
 from procedures._errors import ConfigError, RunError
@@ -10,8 +11,8 @@ from procedures._errors import ConfigError, RunError
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser("run", help="run a procedure on a station")
-    parser.add_argument("procedure", metavar="PROCEDURE", help="procedure file, or a built-in name "
-                        "(displacement_calibration, angle_calibration, iso9283_repeatability)")
+    built_in = ", ".join(sorted(path.stem for path in Path(__file__).parent.glob("*.yaml")))
+    parser.add_argument("procedure", metavar="PROCEDURE", help=f"procedure file, or a built-in name ({built_in})")
     parser.add_argument("--station", required=True, help="station YAML, or 'sim' to start the simulated cell")
     parser.add_argument("--seed", type=int, default=0, help="simulated cell seed (with --station sim)")
     parser.add_argument("--pause-timeout", type=float, default=3600.0,

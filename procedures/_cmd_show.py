@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import json
 
-import numpy as np
-
 from procedures._cli_common import add_runs_dir, find_run, open_store
 
 
@@ -33,17 +31,12 @@ def run(args) -> int:
           + (f" — {r['reason']}" if r["reason"] else "")
           + f"\nsamples    {ok} ok, {len(samples) - ok} failed, {r['total_steps']} planned\n"
           f"software   {r['software_version']}\ncalibration {r['calibration_record_id'] or 'none'}")
-    results = r.get("results") or {}
-    if results.get("kind") == "iso9283":
-        print("point  n    RP_l (µm)  RP_a (°)   RP_b (°)   RP_c (°)   AP_P (µm)")
-        for label in results["order"]:
-            e = results["points"][label]
-            s = e.get("stats")
-            if s:
-                print(f"{label:<5} {e['n']:>3}  {s['rp_l'] * 1e6:9.2f}  {np.degrees(s['rp_a']):9.5f}  "
-                      f"{np.degrees(s['rp_b']):9.5f}  {np.degrees(s['rp_c']):9.5f}  {s['ap_p'] * 1e6:9.2f}")
-    elif results.get("kind", "").endswith("_calibration"):
-        print(f"record     {results['record_path']} ({results['record_id']})")
+    from procedures.kinds import KINDS  # the measurement stack loads only for a run's results
+
+    results, kind = r.get("results"), KINDS.get(r["procedure"])
+    if results and kind is not None:
+        for line in kind.summary_lines(results):
+            print(line)
     print("recent events:")
     for e in events[-8:]:
         print(f"  {e['kind']}: {e['message']}")

@@ -7,6 +7,7 @@ import signal
 import sys
 import threading
 from pathlib import Path
+from typing import Any
 
 import yaml
 
@@ -27,7 +28,7 @@ def register(subparsers) -> None:
 def run(args) -> int:
     from sim_devices.cell import CellHost
 
-    config = {}
+    config: dict[str, Any] = {}
     if args.config:
         try:
             config = yaml.safe_load(args.config.read_text()) or {}

@@ -5,7 +5,6 @@ from __future__ import annotations
 import sys
 
 from procedures._errors import ConfigError
-from procedures._loading import detect_kind, load_procedure, load_station
 
 
 def register(subparsers) -> None:
@@ -15,16 +14,20 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
+    from procedures._loading import detect_kind, load_procedure, load_station  # loads the measurement stack
+
     status = 0
     for name in args.files:
         try:
-            kind = detect_kind(name)
-            model = load_station(name) if kind == "station" else load_procedure(name)
+            if detect_kind(name) == "station":
+                load_station(name)
+                what = "station"
+            else:
+                what = load_procedure(name).procedure
         except ConfigError as exc:
             status = 1
             for problem in exc.problems:
                 print(problem, file=sys.stderr)
             continue
-        what = model.procedure if kind == "procedure" else "station"
         print(f"{name}: OK ({what})")
     return status

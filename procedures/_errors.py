@@ -26,7 +26,3 @@ class DryRunFailed(RunError):
 
 class RunAborted(RunError):
     """The operator (or the cell) aborted the run."""
-
-
-class RunPaused(RunError):
-    """Raised inside the engine to leave the step loop when a run pauses without a resume."""

@@ -36,7 +36,7 @@ def _resolve_callable(spec: HookSpec) -> Callable[[dict], Any]:
         for part in attr.split("."):
             target = getattr(target, part)
         return target
-    found = entry_points(group=ENTRY_POINT_GROUP, name=spec.entry_point)
+    found = entry_points(group=ENTRY_POINT_GROUP, name=spec.entry_point or "")
     if not found:
         raise HookFailed(f"no entry point {spec.entry_point!r} in group {ENTRY_POINT_GROUP!r}")
     return next(iter(found)).load()
@@ -62,11 +62,11 @@ def _run_callable(spec: HookSpec, event: dict) -> None:
         raise HookFailed(f"{type(exc).__name__}: {exc}")
 
 
-def _run_shell(spec: HookSpec, event: dict) -> None:
+def _run_shell(spec: HookSpec, command: str, event: dict) -> None:
     payload = json.dumps(event)
     env = {**os.environ, "INSTRUMENT_EVENT": payload, "INSTRUMENT_EVENT_NAME": event["event"]}
     # Own session, so a timeout can stop the whole command (shell and children) by its group id.
-    process = subprocess.Popen(spec.shell, shell=True, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL,
+    process = subprocess.Popen(command, shell=True, stdin=subprocess.PIPE, stdout=subprocess.DEVNULL,
                                stderr=subprocess.PIPE, env=env, start_new_session=True)
     try:
         _, stderr = process.communicate(payload.encode(), timeout=spec.timeout_s)
@@ -79,8 +79,8 @@ def _run_shell(spec: HookSpec, event: dict) -> None:
         raise HookFailed(f"shell command exited with status {process.returncode}" + (f": {tail}" if tail else ""))
 
 
-def _run_http(spec: HookSpec, event: dict) -> None:
-    request = urllib.request.Request(spec.http, data=json.dumps(event).encode(), method="POST",
+def _run_http(spec: HookSpec, url: str, event: dict) -> None:
+    request = urllib.request.Request(url, data=json.dumps(event).encode(), method="POST",
                                      headers={"Content-Type": "application/json"})
     # Never go through a proxy: the target is loopback by validation.
     opener = urllib.request.build_opener(urllib.request.ProxyHandler({}))
@@ -88,9 +88,9 @@ def _run_http(spec: HookSpec, event: dict) -> None:
         with opener.open(request, timeout=spec.timeout_s) as response:
             response.read()
     except urllib.error.HTTPError as exc:
-        raise HookFailed(f"HTTP {exc.code} from {spec.http}") from None
+        raise HookFailed(f"HTTP {exc.code} from {url}") from None
     except (urllib.error.URLError, OSError) as exc:
-        raise HookFailed(f"POST {spec.http} failed: {getattr(exc, 'reason', exc)}") from None
+        raise HookFailed(f"POST {url} failed: {getattr(exc, 'reason', exc)}") from None
 
 
 class HookRunner:
@@ -116,9 +116,9 @@ class HookRunner:
             what = spec.call or spec.entry_point or spec.shell or spec.http
             try:
                 if spec.shell:
-                    _run_shell(spec, event)
+                    _run_shell(spec, spec.shell, event)
                 elif spec.http:
-                    _run_http(spec, event)
+                    _run_http(spec, spec.http, event)
                 else:
                     _run_callable(spec, event)
             except Exception as exc:  # a hook never stops the run

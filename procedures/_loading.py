@@ -8,9 +8,11 @@ from typing import Any
 
 from pydantic import BaseModel, ValidationError
 
+from instrument.pose import Geometry
 from procedures._errors import ConfigError
-from procedures._models import PROCEDURE_MODELS, ProcedureFile, StationFile
+from procedures._models import StationFile
 from procedures._yamlmarks import MarkedYaml, load_marked
+from procedures.kinds import KINDS, ProcedureBase
 
 PACKAGE_DIR = Path(__file__).resolve().parent
 SCHEMA_DIR = PACKAGE_DIR / "schemas"
@@ -109,14 +111,7 @@ def load_station(path: str | Path, *, check_geometry: bool = True) -> StationFil
 
 
 def _check_geometry(geometry: dict) -> str | None:
-    """Let ``instrument.pose.Geometry.from_dict`` judge the geometry when it is available."""
-    try:
-        from instrument.pose import Geometry  # type: ignore[attr-defined]
-    except ImportError:
-        screens = geometry.get("screens")
-        if not isinstance(screens, dict) or set(screens) != {"x", "y", "z"}:
-            return "expected 'screens' with entries x, y and z"
-        return None
+    """Let ``instrument.pose.Geometry.from_dict`` judge the geometry."""
     try:
         Geometry.from_dict(geometry)
     except (TypeError, ValueError, KeyError) as exc:
@@ -133,21 +128,22 @@ def resolve_procedure_path(name_or_path: str | Path) -> Path:
         if candidate.is_file():
             return candidate
     raise ConfigError([f"{name_or_path}: no such procedure file (and no built-in procedure of that name; "
-                       f"built-ins: {', '.join(sorted(PROCEDURE_MODELS))})"])
+                       f"built-ins: {', '.join(sorted(KINDS))})"])
 
 
-def load_procedure(path: str | Path, text: str | None = None) -> ProcedureFile:
-    """Parse and validate a procedure file (``procedure:`` selects the kind)."""
+def load_procedure(path: str | Path, text: str | None = None) -> ProcedureBase:
+    """Parse and validate a procedure file: ``procedure:`` names the kind, whose model checks the rest."""
     marked = load_marked(path, text)
     data = marked.data
     if not isinstance(data, dict):
         raise ConfigError([f"{marked.source}:1: (document): expected a mapping with 'procedure' and 'parameters'"])
-    kind = data.get("procedure")
-    if kind not in PROCEDURE_MODELS:
-        got = "missing" if kind is None else f"got {kind!r}"
+    name = data.get("procedure")
+    kind = KINDS.get(name) if isinstance(name, str) else None
+    if kind is None:
+        got = "missing" if name is None else f"got {name!r}"
         raise ConfigError([f"{marked.where(('procedure',))}: procedure: expected one of "
-                           f"{', '.join(PROCEDURE_MODELS)} ({got})"])
-    model = PROCEDURE_MODELS[kind]
+                           f"{', '.join(KINDS)} ({got})"])
+    model = kind.file_model
     try:
         return model.model_validate(data)
     except ValidationError as exc:
@@ -168,8 +164,8 @@ def detect_kind(path: str | Path) -> str:
 def json_schemas() -> dict[str, dict]:
     """Editor schemas (JSON Schema draft 2020-12), one per file kind, from the models."""
     schemas = {"station": StationFile.model_json_schema()}
-    for name, model in PROCEDURE_MODELS.items():
-        schemas[name] = model.model_json_schema()
+    for name, kind in KINDS.items():
+        schemas[name] = kind.file_model.model_json_schema()
     for name, schema in schemas.items():
         schema["$schema"] = "https://json-schema.org/draft/2020-12/schema"
         schema["$id"] = f"https://opr-instrument.invalid/schemas/{name}.json"

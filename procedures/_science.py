@@ -1,21 +1,28 @@
 """The seam between the engine and the measurement core.
 
-The engine only talks to a ``Science`` object: locate + solve a frame triple, the ISO cube, the
-ISO statistics, the calibration fit and the compensator in force. ``InstrumentScience`` wires the
-real ``instrument`` package (imported lazily, so the engine loads before every piece of the core
-exists); tests use a fake with the same methods.
+The engine and the procedure kinds talk to a ``Science`` object: locate + solve a frame triple,
+the dry run's visibility check, the rigid fit, the ISO statistics, the calibration fit and the
+compensator in force. ``InstrumentScience`` wires the real ``instrument`` package; tests use a
+fake with the same methods.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import hashlib
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
+
+from drivers.camera import Frame
+from instrument.compensation import CalibrationData, CalibrationRecord, Provenance, calibrate, default_compensators
+from instrument.iso9283 import pose_accuracy, pose_repeatability
+from instrument.pose import Geometry, Pose, PoseError, fit_rigid_transform, predict_measurements, solve_pose
+from instrument.vision import CrossMeasurement, CrossNotFound, locate_cross
+from procedures._models import StationFile
 
 COMPONENTS = ("x", "y", "z", "a", "b", "c")  # order of a (6,) pose in M; a, b, c = alpha, theta, gamma
 ANGLE_COMPONENT = {"x": "a", "y": "b", "z": "c"}  # rotation about M's axis k
@@ -41,9 +48,9 @@ class PoseMeasurement:
 
 @dataclass
 class CalibrationResult:
-    """What a calibration fit hands back to the engine.
+    """What a calibration fit hands back.
 
-    record_json : the record file's text (written by the engine).
+    record_json : the record file's text (written by the calibration kind).
     record_id : the record's identity (what every later run names).
     curves : per component, ``{"measured": [...], "error_before": [...], "error_after": [...],
         "reference": [...], "group": [...]}`` in SI, for the report; ``summary`` free-form figures.
@@ -51,7 +58,7 @@ class CalibrationResult:
 
     record_json: str
     record_id: str
-    curves: dict[str, dict[str, list]]
+    curves: dict[str, dict[str, list[Any]]]
     summary: dict[str, Any] = field(default_factory=dict)
 
 
@@ -66,34 +73,40 @@ class Compensator(Protocol):
 
 @runtime_checkable
 class Science(Protocol):
-    def configure(self, station: Any) -> None: ...
+    def configure(self, station: StationFile) -> None:
+        """Take the station's geometry (called before a run's first pose)."""
+        ...
 
-    def measure(self, frames: Mapping[str, Any]) -> PoseMeasurement: ...
+    def measure(self, frames: Mapping[str, Frame]) -> PoseMeasurement:
+        """One frame per screen → the OPR pose; raises ``MeasurementFailed``."""
+        ...
 
-    def cube_points(self, center: np.ndarray, edge: float) -> tuple[list[str], np.ndarray]: ...
+    def visibility_problems(self, opr_in_m: np.ndarray) -> list[str]:
+        """Why the crosses of the OPR at ``opr_in_m`` (6,) would not all be seen (empty: they would)."""
+        ...
 
-    def visibility_problems(self, opr_in_m: np.ndarray) -> list[str]: ...
+    def fit_rigid_transform(self, source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+        """``target ≈ R·source + t``: (R (3, 3), t (3,), residual RMS)."""
+        ...
 
-    def fit_rigid_transform(self, source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]: ...
+    def iso_statistics(self, poses: np.ndarray, commanded: np.ndarray) -> dict[str, Any]:
+        """ISO 9283 RP and AP of ``poses`` (n, 6) against ``commanded`` (6,), JSON-able, lower-case keys."""
+        ...
 
-    def iso_statistics(self, poses: np.ndarray, commanded: np.ndarray) -> dict[str, Any]: ...
+    def fit_calibration(self, kind: str, data: dict[str, list[dict[str, Any]]],
+                        provenance: dict[str, Any]) -> CalibrationResult:
+        """A calibration record from per-component rows of measured, reference, group, point."""
+        ...
 
-    def fit_calibration(self, kind: str, data: dict[str, list[dict]], provenance: dict) -> CalibrationResult: ...
-
-    def load_compensator(self, path: str | Path) -> Compensator: ...
-
-
-def record_id_of(text: str) -> str:
-    """A content hash, used when a record does not name itself."""
-    return "sha256:" + hashlib.sha256(text.encode()).hexdigest()[:16]
+    def load_compensator(self, path: str | Path) -> Compensator:
+        """The compensator of a calibration record file."""
+        ...
 
 
 def _plain(value: Any) -> Any:
-    """Any result object (dataclass, namedtuple, numpy) → JSON-able dict/list/float."""
+    """A result object of the core (dataclass, numpy) → JSON-able dict/list/float."""
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
         return {f.name: _plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
-    if hasattr(value, "_asdict"):
-        return {k: _plain(v) for k, v in value._asdict().items()}
     if isinstance(value, Mapping):
         return {str(k): _plain(v) for k, v in value.items()}
     if isinstance(value, np.ndarray):
@@ -105,58 +118,53 @@ def _plain(value: Any) -> Any:
     return value
 
 
-class InstrumentScience:
-    """The real measurement core (``instrument.vision``, ``.pose``, ``.iso9283``, ``.compensation``).
+def _cross_quality(cross: CrossMeasurement) -> dict[str, Any]:
+    return {
+        "center_px": [float(v) for v in cross.center],
+        "angle_rad": float(cross.angle),
+        "perpendicularity_rad": float(cross.perpendicularity),
+        "peak_level": float(cross.peak_level),
+        "sections": [int(cross.horizontal.sections), int(cross.vertical.sections)],
+        "residual_rms_px": [float(cross.horizontal.residual_rms), float(cross.vertical.residual_rms)],
+        "saturated_sections": [int(cross.horizontal.saturated_sections), int(cross.vertical.saturated_sections)],
+    }
 
-    Every method imports what it needs when first called, and says which piece is missing.
-    """
+
+class InstrumentScience:
+    """The real measurement core (``instrument.vision``, ``.pose``, ``.iso9283``, ``.compensation``)."""
 
     def __init__(self) -> None:
-        self.geometry = None
-        self.tool_in_opr = None
+        self._geometry: Geometry | None = None
 
-    def configure(self, station: Any) -> None:
-        from instrument.pose import Geometry  # type: ignore[attr-defined]
+    @property
+    def geometry(self) -> Geometry:
+        if self._geometry is None:
+            raise RuntimeError("InstrumentScience.configure(station) must come before any measurement")
+        return self._geometry
 
-        self.geometry = Geometry.from_dict(station.geometry)
+    def configure(self, station: StationFile) -> None:
+        self._geometry = Geometry.from_dict(station.geometry)
 
     # -- one pose
-    def measure(self, frames: Mapping[str, Any]) -> PoseMeasurement:
-        from instrument.pose import solve_pose  # type: ignore[attr-defined]
-        from instrument.vision import CrossNotFound, locate_cross  # type: ignore[attr-defined]
-
-        crosses, quality = {}, {}
+    def measure(self, frames: Mapping[str, Frame]) -> PoseMeasurement:
+        crosses: dict[str, CrossMeasurement] = {}
         for screen, frame in frames.items():
             try:
-                cross = locate_cross(frame.image, saturation=frame.saturation)
+                crosses[screen] = locate_cross(frame.image, saturation=frame.saturation)
             except (CrossNotFound, ValueError) as exc:
                 raise MeasurementFailed(f"screen {screen}: {exc}") from None
-            crosses[screen] = cross
-            quality[screen] = {
-                "center_px": [float(v) for v in cross.center],
-                "angle_rad": float(cross.angle),
-                "perpendicularity_rad": float(cross.perpendicularity),
-                "peak_level": float(cross.peak_level),
-                "sections": [int(cross.horizontal.sections), int(cross.vertical.sections)],
-                "residual_rms_px": [float(cross.horizontal.residual_rms), float(cross.vertical.residual_rms)],
-                "saturated_sections": [
-                    int(cross.horizontal.saturated_sections),
-                    int(cross.vertical.saturated_sections),
-                ],
-            }
         try:
             estimate = solve_pose(crosses, self.geometry)
         except (ValueError, ArithmeticError) as exc:
             raise MeasurementFailed(f"pose solver: {exc}") from None
         pose = np.concatenate([np.asarray(estimate.translation, float), np.asarray(estimate.euler, float)])
-        return PoseMeasurement(pose=pose, residual_rms=float(estimate.residual_rms), crosses=quality)
+        return PoseMeasurement(pose=pose, residual_rms=float(estimate.residual_rms),
+                               crosses={screen: _cross_quality(cross) for screen, cross in crosses.items()})
 
     # -- dry run
     def visibility_problems(self, opr_in_m: np.ndarray) -> list[str]:
         """Run the exact forward model (``instrument.pose.predict_measurements``): a cross that
         would leave its camera's image, or a pose the model cannot map, is a problem."""
-        from instrument.pose import Pose, PoseError, predict_measurements  # type: ignore[attr-defined]
-
         try:
             predict_measurements(Pose.from_euler(opr_in_m[:3], opr_in_m[3:]), self.geometry)
         except PoseError as exc:
@@ -164,38 +172,21 @@ class InstrumentScience:
         return []
 
     # -- ISO 9283
-    def cube_points(self, center: np.ndarray, edge: float) -> tuple[list[str], np.ndarray]:
-        from instrument.iso9283 import iso_cube_points  # type: ignore[attr-defined]
-
-        cube = iso_cube_points(center, edge)
-        return list(cube.order), cube.positions_in_order()
-
     def fit_rigid_transform(self, source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-        from instrument.pose import fit_rigid_transform  # type: ignore[attr-defined]
-
-        result = fit_rigid_transform(source, target)
-        if isinstance(result, tuple):
-            rotation, translation, *rest = result
-            rms = float(rest[0]) if rest else float("nan")
-        else:
-            rotation, translation = result.rotation, result.translation
-            rms = float(getattr(result, "residual_rms", float("nan")))
-        return np.asarray(rotation, float), np.asarray(translation, float), rms
+        fit = fit_rigid_transform(source, target)
+        return np.asarray(fit.rotation, float), np.asarray(fit.translation, float), float(fit.residual_rms)
 
     def iso_statistics(self, poses: np.ndarray, commanded: np.ndarray) -> dict[str, Any]:
-        from instrument.iso9283 import pose_accuracy, pose_repeatability  # type: ignore[attr-defined]
-
         confidence = 0.95 if len(poses) >= 3 else None
         out = {k.lower(): v for k, v in _plain(pose_repeatability(poses, confidence=confidence)).items()}
         out.update({k.lower(): v for k, v in _plain(pose_accuracy(poses, commanded, confidence=confidence)).items()})
         return out
 
     # -- compensation
-    def fit_calibration(self, kind: str, data: dict[str, list[dict]], provenance: dict) -> CalibrationResult:
+    def fit_calibration(self, kind: str, data: dict[str, list[dict[str, Any]]],
+                        provenance: dict[str, Any]) -> CalibrationResult:
         """``instrument.compensation.calibrate`` over the default compensators (the held-out
         winner per component), on the run's (measured, reference, group, point) rows."""
-        from instrument.compensation import CalibrationData, Provenance, calibrate, default_compensators
-
         prepared = {
             component: CalibrationData(component, np.array([r["measured"] for r in rows]),
                                        np.array([r["reference"] for r in rows]),
@@ -217,20 +208,18 @@ class InstrumentScience:
                                  curves=curves, summary=summary)
 
     def load_compensator(self, path: str | Path) -> Compensator:
-        from instrument.compensation import CalibrationRecord  # type: ignore[attr-defined]
-
         text = Path(path).read_text(encoding="utf-8")
-        return _RecordCompensator(CalibrationRecord.from_json(text), text)
+        return RecordCompensator(CalibrationRecord.from_json(text))
 
 
-class _RecordCompensator:
-    def __init__(self, record: Any, text: str) -> None:
+class RecordCompensator:
+    """A calibration record applied to whole poses; each record corrects only its own components."""
+
+    def __init__(self, record: CalibrationRecord) -> None:
         self.record = record
-        self.record_id = getattr(record, "content_id", None) or record_id_of(text)
+        self.record_id = record.content_id
 
     def correct(self, pose: np.ndarray) -> tuple[np.ndarray, list[str]]:
-        import warnings
-
         with warnings.catch_warnings():  # out-of-range corrections come back as flags
             warnings.simplefilter("ignore")
             values, flags = self.record.correct_pose(dict(zip(COMPONENTS, (float(v) for v in pose))))

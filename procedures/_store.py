@@ -21,6 +21,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
+from procedures._run_state import RunState
+
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS runs (
     id TEXT PRIMARY KEY,
@@ -74,8 +78,6 @@ CREATE TABLE IF NOT EXISTS events (
 );
 """
 
-STATES = ("QUEUED", "RUNNING", "PAUSED", "FINISHED", "FAILED", "ABORTED")
-TERMINAL = ("FINISHED", "ABORTED")
 _JSON_RUN = ("parameters", "station", "results")
 _JSON_SAMPLE = ("commanded", "solved", "corrected", "crosses", "reference", "meta", "frames")
 
@@ -85,8 +87,6 @@ def _dumps(value: Any) -> str | None:
 
 
 def _default(value: Any) -> Any:
-    import numpy as np
-
     if isinstance(value, np.ndarray):
         return value.tolist()
     if isinstance(value, (np.floating, np.integer, np.bool_)):
@@ -171,26 +171,27 @@ class RunStore:
             "station_name, station_path, station, software_version, calibration_record_id, state, total_steps, "
             "created) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
             (run_id, procedure, procedure_name, procedure_file, procedure_text, _dumps(parameters), station_name,
-             station_path, _dumps(station), software_version, calibration_record_id, "QUEUED", total_steps,
+             station_path, _dumps(station), software_version, calibration_record_id, RunState.QUEUED.value,
+             total_steps,
              time.time()),
         )
         self.log(run_id, "created", f"{procedure} queued")
         return run_id
 
-    def set_state(self, run_id: str, state: str, *, exit_status: str | None = None, reason: str | None = None) -> None:
-        if state not in STATES:
-            raise ValueError(f"unknown run state {state!r}")
+    def set_state(self, run_id: str, state: RunState, *, reason: str | None = None) -> None:
+        """Record a state change (and its exit status and reason) in the run row and its events."""
+        state = RunState(state)  # a plain string from a caller is checked here
         now = time.time()
         sets = ["state = ?", "reason = ?", "exit_status = ?"]
-        values: list[Any] = [state, reason, exit_status]
-        if state == "RUNNING":
+        values: list[Any] = [state.value, reason, state.exit_status]
+        if state == RunState.RUNNING:
             sets += ["started = COALESCE(started, ?)", "host = ?", "pid = ?", "finished = NULL"]
             values += [now, socket.gethostname(), os.getpid()]
-        if state in ("FINISHED", "FAILED", "ABORTED"):
+        if state.ended:
             sets.append("finished = ?")
             values.append(now)
         self._db.execute(f"UPDATE runs SET {', '.join(sets)} WHERE id = ?", (*values, run_id))
-        self.log(run_id, "state", state + (f": {reason}" if reason else ""))
+        self.log(run_id, "state", state.value + (f": {reason}" if reason else ""))
 
     def set_results(self, run_id: str, results: dict) -> None:
         self._db.execute("UPDATE runs SET results = ? WHERE id = ?", (_dumps(results), run_id))
@@ -203,8 +204,8 @@ class RunStore:
             self._db.execute(f"UPDATE runs SET {key} = ? WHERE id = ?",
                              (_dumps(value) if key == "station" else value, run_id))
 
-    def get_run(self, run_id: str) -> dict:
-        """The run row as a dict (JSON fields decoded). ``run_id`` may be a unique prefix."""
+    def get_run(self, run_id: str) -> dict[str, Any]:
+        """The run row as a dict (JSON fields decoded, ``state`` a ``RunState``). ``run_id`` may be a unique prefix."""
         rows = self._db.execute("SELECT * FROM runs WHERE id LIKE ? ORDER BY created", (run_id + "%",)).fetchall()
         if not rows:
             raise KeyError(f"no run {run_id!r} in {self.path}")
@@ -213,16 +214,18 @@ class RunStore:
         run = dict(rows[0])
         for key in _JSON_RUN:
             run[key] = json.loads(run[key]) if run[key] else None
+        run["state"] = RunState(run["state"])
         return run
 
-    def list_runs(self) -> list[dict]:
+    def list_runs(self) -> list[dict[str, Any]]:
+        """Every run, oldest first: the run row's summary columns plus its number of samples."""
         rows = self._db.execute(
             "SELECT r.id, r.procedure, r.procedure_name, r.station_name, r.state, r.exit_status, r.reason, "
             "r.created, r.started, r.finished, r.total_steps, "
             "(SELECT COUNT(*) FROM samples s WHERE s.run_id = r.id) AS samples "
             "FROM runs r ORDER BY r.created"
         ).fetchall()
-        return [dict(row) for row in rows]
+        return [{**dict(row), "state": RunState(row["state"])} for row in rows]
 
     # --------------------------------------------------------------------------------- samples
     def add_sample(

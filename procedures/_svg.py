@@ -6,6 +6,7 @@ from collections.abc import Sequence
 from html import escape
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 PALETTE = ("#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b")
 
@@ -20,7 +21,7 @@ def _ticks(low: float, high: float, count: int = 5) -> list[float]:
     return [float(v) for v in np.arange(first, high + step * 1e-9, step)]
 
 
-def scatter(series: Sequence[tuple[str, Sequence[float], Sequence[float]]], *, title: str, xlabel: str, ylabel: str,
+def scatter(series: Sequence[tuple[str, ArrayLike, ArrayLike]], *, title: str, xlabel: str, ylabel: str,
             width: int = 420, height: int = 300, square: bool = False, zero_line: bool = False) -> str:
     """An SVG scatter plot. ``series`` is a list of ``(name, xs, ys)``; units belong in the labels."""
     left, right, top, bottom = 64, 12, 28, 44
@@ -62,7 +63,7 @@ def scatter(series: Sequence[tuple[str, Sequence[float], Sequence[float]]], *, t
                  f'transform="rotate(-90 12 {top + ph / 2})">{escape(ylabel)}</text>')
     for i, (name, sx, sy) in enumerate(series):
         color = PALETTE[i % len(PALETTE)]
-        for x, y in zip(sx, sy):
+        for x, y in zip(np.asarray(sx, float), np.asarray(sy, float)):
             if np.isfinite(x) and np.isfinite(y):
                 parts.append(f'<circle cx="{px(x):.1f}" cy="{py(y):.1f}" r="2.2" fill="{color}" fill-opacity="0.7"/>')
         parts.append(f'<circle cx="{left + 8}" cy="{top + 10 + 13 * i}" r="3" fill="{color}"/>'

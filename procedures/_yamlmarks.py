@@ -61,14 +61,23 @@ def load_marked(path: str | Path, text: str | None = None) -> MarkedYaml:
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark or exc.context_mark
         line = mark.line + 1 if mark else 1
-        raise ConfigError([f"{source}:{line}: YAML syntax: {exc.problem or exc}"]) from None
+        raise ConfigError([f"{source}:{line}: YAML syntax: {exc.problem or _first_line(exc)}"]) from None
+    except yaml.reader.ReaderError as exc:  # a character YAML does not allow; it has a position, not a mark
+        line = text.count("\n", 0, exc.position) + 1
+        what = f"#x{exc.character:04x}" if isinstance(exc.character, int) else repr(exc.character)
+        raise ConfigError([f"{source}:{line}: YAML: unacceptable character {what}: {exc.reason}"]) from None
     except yaml.YAMLError as exc:
-        raise ConfigError([f"{source}:1: YAML: {exc}"]) from None
+        raise ConfigError([f"{source}:1: YAML: {_first_line(exc)}"]) from None
     lines: dict[Path_, int] = {}
     key_lines: dict[Path_, int] = {}
     if node is not None:
         _walk(node, (), lines, key_lines)
     return MarkedYaml(data, lines, key_lines, source)
+
+
+def _first_line(exc: Exception) -> str:
+    """The parser's message without the context lines it adds (one problem, one line)."""
+    return (str(exc).strip().splitlines() or [type(exc).__name__])[0]
 
 
 def _walk(node: yaml.Node, path: Path_, lines: dict, key_lines: dict) -> None:

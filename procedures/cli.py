@@ -7,12 +7,23 @@ Each subcommand lives in its own module ``procedures/_cmd_<name>.py`` exposing
 from __future__ import annotations
 
 import argparse
-import importlib
 import sys
 
 from instrument import __version__
+from procedures import (
+    _cmd_export,
+    _cmd_locate,
+    _cmd_report,
+    _cmd_resume,
+    _cmd_run,
+    _cmd_runs,
+    _cmd_show,
+    _cmd_sim,
+    _cmd_validate,
+)
 
-COMMANDS = ("locate", "sim", "validate", "run", "resume", "runs", "show", "report", "export")
+COMMANDS = (_cmd_locate, _cmd_sim, _cmd_validate, _cmd_run, _cmd_resume, _cmd_runs, _cmd_show, _cmd_report,
+            _cmd_export)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -22,14 +33,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"instrument {__version__}")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name in COMMANDS:
-        try:
-            module = importlib.import_module(f"procedures._cmd_{name}")
-        except ModuleNotFoundError as exc:
-            if exc.name != f"procedures._cmd_{name}":
-                raise
-            continue  # not built yet
-        module.register(subparsers)
+    for command in COMMANDS:
+        command.register(subparsers)
     return parser
 
 

@@ -23,6 +23,7 @@ from procedures._api import open_engine
 from procedures._cli_common import Display
 from procedures._loading import resolve_procedure_path
 from procedures._report import render_report
+from procedures._run_state import RunState
 from procedures._store import RunStore
 
 ARCSEC = np.pi / (180 * 3600)
@@ -60,7 +61,7 @@ def run_procedure(runs_dir: Path, procedure: Path, station: Path, quiet: bool) -
         run = engine.store.get_run(engine.run_id)
     print(f"\n   {state} in {time.monotonic() - started:.0f} s" + (f" — {run['reason']}" if run["reason"] else ""),
           file=sys.stderr)
-    if state != "FINISHED":
+    if state != RunState.FINISHED:
         raise SystemExit(f"demo: {procedure.name} ended {state}: {run['reason']}")
     return run
 

@@ -7,7 +7,8 @@ import pytest
 
 from procedures._api import open_engine
 from procedures._errors import RunError
-from tests.fakes import FakeCell, FakeScience, write_station
+from procedures._geometry import tcp_in_m
+from tests.fakes import REFERENCE_TCP, FakeCell, FakeScience, write_station
 
 
 def _procedure(tmp_path, kind, **params):
@@ -219,3 +220,25 @@ def test_too_many_failures_fail_the_run(setup):
         run = engine.store.get_run(engine.run_id)
     assert "max_failed_samples" in run["reason"]
     assert run["exit_status"] == "fail"
+
+
+def test_interferometer_is_aligned_where_each_line_starts(setup):
+    """The operator aims the interferometer at the reflector, so the robot must already stand at the
+    line's first point when asked (the InterferometerAligned set-up comes after the step's motion)."""
+    tmp_path, station, cell = setup
+    aligned_at = {}
+    align = cell.operator.align_interferometer
+
+    def recording_align(axis):
+        aligned_at[axis] = tcp_in_m(REFERENCE_TCP, cell.robot.tcp_pose())[:3, 3]
+        align(axis)
+
+    cell.operator.align_interferometer = recording_align
+    proc = _procedure(tmp_path, "displacement_calibration", axes="[y, z]", repeats=1, start_mm=10)
+    with _engine(tmp_path, station, cell, proc) as engine:
+        assert engine.execute() == "FINISHED"
+    for axis, position in aligned_at.items():
+        expected = np.zeros(3)
+        expected["xyz".index(axis)] = 0.010  # group 0 starts at M's origin, its line at start_mm
+        np.testing.assert_allclose(position, expected, atol=1e-12)
+    assert list(aligned_at) == ["y", "z"]

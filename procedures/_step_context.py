@@ -1,0 +1,138 @@
+"""The ``StepContext`` a procedure kind measures through, on a real (or fake) station.
+
+Motion runs at the procedure's speed and within its timeouts; waits end early on an abort; a pose
+is measured from ``frames_per_pose`` frame triples, retried when frames fail, corrected with the
+calibration records in force, and failed frames are kept as the procedure asks.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from drivers.camera import Frame, GrabFailed
+from drivers.interferometer import Interferometer
+from drivers.robot import MotionEnvelope, Robot
+from drivers.rotary_table import RotaryTable
+from procedures._science import COMPONENTS, Compensator, MeasurementFailed, PoseMeasurement, Science
+from procedures._station import StationRuntime
+from procedures.kinds import MotionParameters, PoseReading, Step
+
+SCREENS = ("x", "y", "z")
+
+
+def robot_speed(envelope: MotionEnvelope, params: MotionParameters) -> tuple[float, float]:
+    """Linear speed (m/s) and acceleration (m/s²) of the run: its percentages of the envelope's caps."""
+    return (envelope.max_speed * params.speed_percent / 100.0,
+            envelope.max_acceleration * params.acceleration_percent / 100.0)
+
+
+class StationStepContext:
+    """A ``StepContext`` on a ``StationRuntime``.
+
+    Parameters
+    ----------
+    station : the devices, opened on first use
+    params : the run's motion and measurement parameters
+    science : locates and solves frame triples
+    compensators : the calibration records in force (empty: poses are not corrected)
+    wait : sleeps, raising when the run is aborted meanwhile
+    check_abort : raises when the run has been aborted
+    log : ``log(kind, message)`` into the run's events
+    run_dir : the run's folder; saved frames go to its ``frames/``
+    """
+
+    def __init__(self, station: StationRuntime, params: MotionParameters, science: Science, *,
+                 compensators: Sequence[Compensator], wait: Callable[[float], None],
+                 check_abort: Callable[[], None], log: Callable[[str, str], None], run_dir: Path) -> None:
+        self._station, self._params, self._science = station, params, science
+        self._compensators = list(compensators)
+        self._wait, self._check_abort, self._log, self._run_dir = wait, check_abort, log, run_dir
+
+    @property
+    def robot(self) -> Robot:
+        return self._station.robot
+
+    @property
+    def table(self) -> RotaryTable:
+        return self._station.table
+
+    @property
+    def interferometer(self) -> Interferometer:
+        return self._station.interferometer
+
+    def move_robot(self, tcp_pose: Sequence[float]) -> None:
+        speed, acceleration = robot_speed(self._station.envelope, self._params)
+        self.robot.move_linear(np.asarray(tcp_pose, dtype=float), speed, acceleration,
+                               timeout=self._params.move_timeout_s)
+
+    def turn_table(self, angle: float, speed: float) -> None:
+        table = self.table
+        table.move_absolute(angle, speed=speed)
+        table.wait_in_position(timeout=self._params.move_timeout_s)
+
+    def settle(self) -> None:
+        self._wait(self._params.settle_time_s)
+
+    def measure_pose(self, step: Step) -> PoseReading:
+        p = self._params
+        last_error, frames_saved = "", []
+        for attempt in range(p.retries_per_pose + 1):
+            self._check_abort()
+            triples: list[dict[str, Frame]] = []
+            try:
+                for _ in range(p.frames_per_pose):
+                    triples.append({s: self._station.camera(s).grab(timeout=p.grab_timeout_s) for s in SCREENS})
+                measurements = [self._science.measure(triple) for triple in triples]
+            except (MeasurementFailed, GrabFailed) as exc:
+                last_error = f"attempt {attempt + 1}: {exc}"
+                self._log("measure_failed", f"{step.key}: {last_error}")
+                if p.save_frames != "never":
+                    frames_saved += self._save_frames(step, triples, f"failed{attempt}")
+                continue
+            if p.save_frames == "always":
+                frames_saved += self._save_frames(step, triples, "ok")
+            stamps = [f.timestamp for t in triples for f in t.values()]
+            solved = _solved(measurements)
+            return PoseReading(ok=True, solved=solved, corrected=self._corrected(solved["pose"]),
+                               crosses={s: [m.crosses.get(s) for m in measurements] for s in SCREENS},
+                               frames=frames_saved or None, t_measured=float(np.mean(stamps)), attempts=attempt + 1)
+        return PoseReading(ok=False, error=last_error, frames=frames_saved or None, attempts=p.retries_per_pose + 1)
+
+    def _corrected(self, pose: list[float]) -> dict[str, Any] | None:
+        if not self._compensators:
+            return None
+        corrected, flags = np.asarray(pose), []
+        for compensator in self._compensators:
+            corrected, more = compensator.correct(corrected)
+            flags += list(more)
+        return {"pose": [float(v) for v in corrected], "flags": flags,
+                "records": [c.record_id for c in self._compensators]}
+
+    def _save_frames(self, step: Step, triples: Sequence[Mapping[str, Frame]], tag: str) -> list[str]:
+        folder = self._run_dir / "frames"
+        folder.mkdir(exist_ok=True)
+        stem = f"{step.index:05d}_{re.sub(r'[^A-Za-z0-9]+', '-', step.key)}_{tag}"
+        saved = []
+        for number, triple in enumerate(triples):
+            for screen, frame in triple.items():
+                path = folder / f"{stem}_{number}_{screen}.npy"
+                np.save(path, np.asarray(frame.image))
+                saved.append(str(Path("frames") / path.name))
+        return saved
+
+
+def _solved(measurements: Sequence[PoseMeasurement]) -> dict[str, Any]:
+    """The mean pose of the frame triples, with their spread and each one's pose."""
+    poses = np.array([m.pose for m in measurements])
+    return {
+        "pose": poses.mean(axis=0).tolist(),
+        "pose_std": poses.std(axis=0).tolist(),
+        "per_frame": poses.tolist(),
+        "residual_rms": float(np.mean([m.residual_rms for m in measurements])),
+        "components": list(COMPONENTS),
+    }

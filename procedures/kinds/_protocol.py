@@ -1,0 +1,212 @@
+"""The ``ProcedureKind`` Protocol the engine drives, and the small types that cross it.
+
+A kind plans a run as a fixed list of ``Step``s, brings the OPR to each step's pose (``move``),
+reads what the step measures (``measure``: its references and the pose from the frames, through
+a ``StepContext``), and turns the committed samples into results (``analyse``, through a narrow
+``AnalysisContext``). The engine knows no kind by name; ``procedures.kinds`` registers them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal, Protocol, TypeVar
+
+from drivers.interferometer import Interferometer
+from drivers.robot import Robot
+from drivers.rotary_table import RotaryTable
+from procedures._models import StationFile
+from procedures._science import Compensator, Science
+from procedures._store import Sample
+from procedures._truth import TruthLog
+from procedures.kinds._parameters import MotionParameters, ProcedureBase
+from procedures.kinds._setups import Setup
+
+DeviceRole = Literal["robot", "rotary_table", "interferometer"]  # the cameras serve every kind
+
+
+@dataclass(frozen=True)
+class Step:
+    """One measured pose of a plan.
+
+    Attributes
+    ----------
+    index : int
+        Position in the plan (0-based); the sample's key in the store.
+    key : str
+        Readable identity, e.g. ``"disp/x/g1/r0/p03"``.
+    phase : str
+        What the sample is for, e.g. ``"calibration"``, ``"transform"``, ``"iso"``.
+    setup : Setup
+        What must be true of the cell (e.g. ``OprOnTable("x")``).
+    tcp_pose : (6,) list or None
+        Commanded UR TCP pose in the base frame (metres, rotation vector); the dry run checks it.
+    table_angle : float or None
+        Commanded table angle, rad.
+    label : str
+        Point name (``"P1"``) or calibration point.
+    meta : dict
+        Axis, group, repeat, cycle, nominal value (SI) ..., stored with the sample.
+    """
+
+    index: int
+    key: str
+    phase: str
+    setup: Setup
+    tcp_pose: list[float] | None = None
+    table_angle: float | None = None
+    label: str = ""
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def robot_target(self) -> list[float]:
+        """The commanded TCP pose of a step that moves the robot (a plan without one is a bug)."""
+        if self.tcp_pose is None:
+            raise ValueError(f"step {self.key}: the plan gives no robot pose")
+        return self.tcp_pose
+
+    def table_target(self) -> float:
+        """The commanded table angle of a step that turns the table (a plan without one is a bug)."""
+        if self.table_angle is None:
+            raise ValueError(f"step {self.key}: the plan gives no table angle")
+        return self.table_angle
+
+
+@dataclass(frozen=True)
+class PoseReading:
+    """The OPR pose from one step's camera frames, or why there is none (``ok`` False, ``error``).
+
+    ``solved``: mean pose, spread, per-frame poses, residual; ``corrected``: after the calibration
+    records in force; ``frames``: saved frame files, relative to the run folder.
+    """
+
+    ok: bool
+    solved: dict[str, Any] | None = None
+    corrected: dict[str, Any] | None = None
+    crosses: dict[str, Any] | None = None
+    frames: list[str] | None = None
+    t_measured: float | None = None
+    attempts: int = 0
+    error: str | None = None
+
+    @property
+    def pose(self) -> list[float] | None:
+        """The best pose: corrected if a record was applied, else solved."""
+        best = self.corrected or self.solved
+        return None if best is None else best["pose"]
+
+
+@dataclass(frozen=True)
+class Reading:
+    """What one step measured: the pose, and the references the kind read beside it (SI, JSON-able).
+
+    ``reference["value"]``, when present, is the reference the calibration compares against.
+    """
+
+    pose: PoseReading
+    reference: dict[str, Any]
+
+
+class StepContext(Protocol):
+    """What a kind's ``move`` and ``measure`` may use: the devices, motion at the run's speed,
+    the settle wait, and the frames → pose measurement (retries, saved frames, compensation)."""
+
+    @property
+    def robot(self) -> Robot: ...
+
+    @property
+    def table(self) -> RotaryTable: ...
+
+    @property
+    def interferometer(self) -> Interferometer: ...
+
+    def move_robot(self, tcp_pose: Sequence[float]) -> None:
+        """Linear move at the procedure's speed and acceleration, within its move timeout."""
+        ...
+
+    def turn_table(self, angle: float, speed: float) -> None:
+        """Turn the table to ``angle`` (rad) at ``speed`` (rad/s) and wait until it is in position."""
+        ...
+
+    def settle(self) -> None:
+        """Wait the procedure's settle time (an abort cuts it short)."""
+        ...
+
+    def measure_pose(self, step: Step) -> PoseReading:
+        """Grab ``frames_per_pose`` frame triples and solve the pose, retrying failed frames."""
+        ...
+
+
+@dataclass(frozen=True)
+class AnalysisContext:
+    """What a kind's ``analyse`` may use: no devices, no engine."""
+
+    run_id: str
+    station: StationFile
+    science: Science
+    compensators: Sequence[Compensator]
+    run_dir: Path
+    truth: TruthLog | None = None
+
+
+@dataclass(frozen=True)
+class Analysis:
+    """A finished run's results (JSON-able, SI) and the calibration record it wrote, if any."""
+
+    results: dict[str, Any]
+    calibration_record_id: str | None = None
+
+
+P = TypeVar("P", bound=MotionParameters)
+
+
+class ProcedureKind(Protocol[P]):
+    """One kind of procedure (``procedure:`` in the YAML). Stateless: the parameters come in."""
+
+    @property
+    def name(self) -> str:
+        """The YAML's ``procedure:`` value and the schema's file name."""
+        ...
+
+    @property
+    def parameters(self) -> type[P]:
+        """The pydantic model of the YAML's ``parameters``."""
+        ...
+
+    @property
+    def file_model(self) -> type[ProcedureBase]:
+        """The pydantic model of the whole procedure file (its JSON Schema is the kind's schema)."""
+        ...
+
+    def plan(self, params: P, station: StationFile) -> list[Step]:
+        """The run's steps: a pure function of the parameters and the station, so a resumed run
+        rebuilds exactly the same list."""
+        ...
+
+    def devices(self, params: P) -> tuple[DeviceRole, ...]:
+        """The devices besides the cameras that the dry run must find reachable and healthy."""
+        ...
+
+    def applies_compensation(self, params: P) -> bool:
+        """Whether measured poses are corrected with the station's calibration records."""
+        ...
+
+    def move(self, step: Step, params: P, ctx: StepContext) -> None:
+        """Bring the OPR to the step's pose (before a set-up that needs it in place)."""
+        ...
+
+    def measure(self, step: Step, params: P, ctx: StepContext) -> Reading:
+        """Settle, read the references, measure the pose."""
+        ...
+
+    def analyse(self, samples: Sequence[Sample], params: P, ctx: AnalysisContext) -> Analysis:
+        """The run's results from its committed samples (failed ones included, ``ok`` False)."""
+        ...
+
+    def report_html(self, results: Mapping[str, Any]) -> str:
+        """The results section of the run's HTML report."""
+        ...
+
+    def summary_lines(self, results: Mapping[str, Any]) -> list[str]:
+        """A few lines of results for ``instrument show``."""
+        ...

@@ -1,0 +1,108 @@
+"""Angle calibration (paper §3.4): the OPR sits on the rotary table, whose axis is one of M's axes;
+the table's encoder is the reference. The operator re-mounts the OPR per axis.
+
+Writes a calibration record with one curve per angle (components a, b, c about x, y, z).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import Field, model_validator
+
+from procedures._models import StationFile
+from procedures._report_sections import calibration_results_html
+from procedures._science import ANGLE_COMPONENT
+from procedures._store import Sample
+from procedures.kinds._calibration import analyse_calibration, calibration_summary_lines, inclusive_range
+from procedures.kinds._parameters import AxisName, MotionParameters, ProcedureBase, all_axes
+from procedures.kinds._protocol import Analysis, AnalysisContext, DeviceRole, Reading, Step, StepContext
+from procedures.kinds._setups import OprOnTable
+
+
+def _paper_group_offsets() -> list[float]:
+    return [0.0, 0.1, -0.1]
+
+
+class AngleParameters(MotionParameters):
+    axes: list[AxisName] = Field(default_factory=all_axes, min_length=1)
+    start_deg: float = Field(-1.0, description="first table angle, degrees")
+    stop_deg: float = Field(1.0, description="last table angle (inclusive), degrees")
+    step_deg: float = Field(0.25, gt=0, description="spacing, degrees")
+    repeats: int = Field(3, ge=1, le=100)
+    groups: int = Field(3, ge=1, le=20)
+    group_start_offsets_deg: list[float] = Field(
+        default_factory=_paper_group_offsets, description="per group, offset of all angles, degrees"
+    )
+    table_speed_deg_s: float = Field(5.0, gt=0, le=360, description="rotary table speed, °/s")
+    home_table: bool = Field(True, description="home the table before the first axis if it is not homed")
+    record_path: str | None = None
+
+    @model_validator(mode="after")
+    def _consistent(self) -> AngleParameters:
+        if self.stop_deg <= self.start_deg:
+            raise ValueError(f"stop_deg ({self.stop_deg}) must be above start_deg ({self.start_deg})")
+        if len(self.group_start_offsets_deg) != self.groups:
+            raise ValueError(f"groups is {self.groups} but group_start_offsets_deg has "
+                             f"{len(self.group_start_offsets_deg)} entries: expected one offset per group")
+        if len(set(self.axes)) != len(self.axes):
+            raise ValueError(f"axes repeat an axis: {self.axes}")
+        return self
+
+
+class AngleCalibration(ProcedureBase):
+    procedure: Literal["angle_calibration"]
+    parameters: AngleParameters = Field(default_factory=AngleParameters)
+
+
+class AngleCalibrationKind:
+    """Per axis, group and repeat, the table angles ``start_deg … stop_deg`` shifted by the group's offset."""
+
+    name = "angle_calibration"
+    parameters = AngleParameters
+    file_model = AngleCalibration
+
+    def plan(self, params: AngleParameters, station: StationFile) -> list[Step]:
+        values = np.radians(inclusive_range(params.start_deg, params.stop_deg, params.step_deg))
+        steps: list[Step] = []
+        for axis in params.axes:
+            setup = OprOnTable(axis, home_table=params.home_table, home_timeout_s=params.move_timeout_s)
+            for g, offset_deg in enumerate(params.group_start_offsets_deg):
+                for r in range(params.repeats):
+                    for i, value in enumerate(values):
+                        angle = float(value + np.radians(offset_deg))
+                        steps.append(Step(
+                            index=len(steps), key=f"angle/{axis}/g{g}/r{r}/p{i:02d}", phase="calibration",
+                            setup=setup, table_angle=angle, label=f"{axis}={np.degrees(angle):.4g}°",
+                            meta={"axis": axis, "group": g, "repeat": r, "point": i, "nominal": angle},
+                        ))
+        return steps
+
+    def devices(self, params: AngleParameters) -> tuple[DeviceRole, ...]:
+        return ("rotary_table",)
+
+    def applies_compensation(self, params: AngleParameters) -> bool:
+        return False
+
+    def move(self, step: Step, params: AngleParameters, ctx: StepContext) -> None:
+        ctx.turn_table(step.table_target(), speed=float(np.radians(params.table_speed_deg_s)))
+
+    def measure(self, step: Step, params: AngleParameters, ctx: StepContext) -> Reading:
+        ctx.settle()
+        table_rad = float(ctx.table.position())
+        return Reading(pose=ctx.measure_pose(step), reference={"table_rad": table_rad, "value": table_rad})
+
+    def analyse(self, samples: Sequence[Sample], params: AngleParameters, ctx: AnalysisContext) -> Analysis:
+        return analyse_calibration(samples, ctx, kind="angle", component_of_axis=ANGLE_COMPONENT,
+                                   reference_instrument="rotary table encoder", record_path=params.record_path)
+
+    def report_html(self, results: Mapping[str, Any]) -> str:
+        return calibration_results_html(results)
+
+    def summary_lines(self, results: Mapping[str, Any]) -> list[str]:
+        return calibration_summary_lines(results)
+
+
+KIND = AngleCalibrationKind()

@@ -1,0 +1,118 @@
+"""Runs stored by an earlier version are still listed, shown, reported, exported and resumed.
+
+``data/runs_stored_by_5786d73.sql`` is the run store (``sqlite3`` dump) that commit 5786d73 — the
+engine before procedure kinds became classes and run states an Enum — wrote for six runs on the
+fake cell: a finished and a paused run of each kind. (Made with that commit's ``open_engine`` and
+``tests.fakes``; its fake science gave the ISO cube from ``instrument.iso9283`` as the real one does.)
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import sqlite3
+from pathlib import Path
+
+import pytest
+
+from procedures._api import open_engine
+from procedures._run_state import RunState
+from procedures._store import RunStore
+from procedures.cli import main
+from tests.fakes import FakeCell, FakeScience
+
+FIXTURE = Path(__file__).parent / "data" / "runs_stored_by_5786d73.sql"
+
+
+@pytest.fixture
+def runs_dir(tmp_path: Path) -> Path:
+    runs = tmp_path / "runs"
+    runs.mkdir()
+    db = sqlite3.connect(runs / "runs.sqlite")
+    db.executescript(FIXTURE.read_text(encoding="utf-8"))
+    db.close()
+    return runs
+
+
+def _stored(runs_dir: Path) -> list[dict]:
+    with RunStore(runs_dir) as store:
+        return [store.get_run(r["id"]) for r in store.list_runs()]
+
+
+def test_the_fixture_holds_a_finished_and_a_paused_run_of_each_kind(runs_dir):
+    runs = _stored(runs_dir)
+    assert sorted((r["procedure"], r["state"]) for r in runs) == sorted(
+        (kind, state) for kind in ("displacement_calibration", "angle_calibration", "iso9283_repeatability")
+        for state in (RunState.FINISHED, RunState.PAUSED))
+    assert all((r["results"] is not None) == (r["state"] == RunState.FINISHED) for r in runs)
+
+
+def test_stored_runs_are_listed_shown_reported_and_exported(runs_dir, tmp_path, capsys):
+    runs = _stored(runs_dir)
+    assert main(["runs", "--runs-dir", str(runs_dir)]) == 0
+    listing = capsys.readouterr().out.splitlines()
+    assert [line.split()[0] for line in listing] == [r["id"][:12] for r in runs]
+    for run in runs:
+        assert main(["show", run["id"], "--runs-dir", str(runs_dir)]) == 0
+        shown = capsys.readouterr().out
+        assert f"state      {run['state']}" in shown
+        results = run["results"]
+        if run["procedure"] == "iso9283_repeatability" and results:
+            for label in results["order"]:
+                stats = results["points"][label]["stats"]
+                assert f"{stats['rp_l'] * 1e6:9.2f}" in shown and f"{stats['ap_p'] * 1e6:9.2f}" in shown
+        elif results:
+            assert f"record     {results['record_path']} ({results['record_id']})" in shown
+
+        html_path = tmp_path / f"{run['id']}.html"
+        assert main(["report", run["id"], "-o", str(html_path), "--runs-dir", str(runs_dir)]) == 0
+        assert capsys.readouterr().out.strip() == str(html_path)
+        html = html_path.read_text(encoding="utf-8")
+        assert run["id"] in html and f"{run['state']} (" in html
+        if not results:
+            assert "No results: the run has not finished." in html
+        elif run["procedure"] == "iso9283_repeatability":
+            rp_l = results["points"]["P1"]["stats"]["rp_l"]
+            assert f"<td>{rp_l * 1e6:.2f}" in html
+        else:
+            assert results["record_id"] in html and "error against measured value" in html
+
+        assert main(["export", run["id"], "--csv", "--runs-dir", str(runs_dir)]) == 0
+        rows = list(csv.DictReader(io.StringIO(capsys.readouterr().out)))
+        with RunStore(runs_dir) as store:
+            samples = store.samples(run["id"])
+        assert [int(row["step_index"]) for row in rows] == [s.step_index for s in samples]
+        assert main(["export", run["id"], "--json", "--runs-dir", str(runs_dir)]) == 0
+        assert json.loads(capsys.readouterr().out)["run"]["state"] == run["state"]
+
+
+# Where each paused run stopped, and so what the operator must do when it resumes.
+OPERATOR_ON_RESUME = {
+    "iso9283_repeatability": [],  # the OPR stays on the robot
+    "displacement_calibration": ["align y"],  # paused on the y axis: the interferometer is re-aimed there
+    "angle_calibration": ["mount table:z", "mount robot"],  # paused on z: mounted there, back on the robot at the end
+}
+
+
+def test_paused_runs_resume_to_the_end_without_touching_committed_samples(runs_dir):
+    paused = [r for r in _stored(runs_dir) if r["state"] == RunState.PAUSED]
+    for number, run in enumerate(paused):
+        with RunStore(runs_dir) as store:
+            before = {s.step_index: s for s in store.samples(run["id"])}
+        cell = FakeCell(seed=11 + number)
+        with open_engine(runs_dir, run_id=run["id"][:10], science=FakeScience(cell), devices=cell.devices(),
+                         operator=cell.operator) as engine:
+            assert engine.execute() == RunState.FINISHED, engine.store.get_run(run["id"])["reason"]
+            finished = engine.store.get_run(run["id"])
+            after = engine.store.samples(run["id"])
+        assert [s.step_index for s in after] == list(range(run["total_steps"]))
+        for sample in after[: len(before)]:
+            assert sample == before[sample.step_index]
+        assert cell.log == OPERATOR_ON_RESUME[run["procedure"]]
+        results = finished["results"]
+        if run["procedure"] == "iso9283_repeatability":
+            assert results["order"] == ["P1", "P5", "P4", "P3", "P2"]
+            assert all(results["points"][p]["n"] == run["parameters"]["cycles"] for p in results["order"])
+        else:
+            assert Path(results["record_path"]).is_file() and finished["calibration_record_id"] == results["record_id"]
