@@ -35,10 +35,12 @@ def station_dict(truth_log: str | None = None, **overrides) -> dict:
     data = {
         "name": "fake cell",
         "devices": {
-            "robot": {"adapter": "fake"},
-            "cameras": {s: {"adapter": "fake", "serial": f"fake-{s}"} for s in "xyz"},
-            "rotary_table": {"adapter": "fake"},
-            "interferometer": {"adapter": "fake"},
+            # Real adapters' settings (the station file is validated against them); tests pass the
+            # fakes to StationRuntime(devices=...), so nothing here is ever opened.
+            "robot": {"adapter": "ur_rtde", "host": "127.0.0.2"},
+            "cameras": {s: {"adapter": "pylon", "serial": f"fake-{s}"} for s in "xyz"},
+            "rotary_table": {"adapter": "modbus_tcp", "host": "127.0.0.1"},
+            "interferometer": {"adapter": "socketcand", "host": "127.0.0.1", "port": 29536},
         },
         "geometry": {"screens": {s: {"origin": [0, 0, 0], "u": [1, 0, 0], "v": [0, 1, 0]} for s in "xyz"}},
         "frames": {"reference_tcp_pose": REFERENCE_TCP, "tcp_offset": [0, 0, 0.08, 0, 0, 0],
@@ -125,7 +127,7 @@ class FakeRobot:
     def tcp_offset(self) -> np.ndarray:
         return self.tcp.copy()
 
-    def connect(self) -> None:
+    def open(self) -> None:
         self.connected = True
 
     def close(self) -> None:
@@ -197,7 +199,7 @@ class FakeTable:
         self.homed = False
         self.stops = 0
 
-    def connect(self) -> None:
+    def open(self) -> None:
         pass
 
     def close(self) -> None:
