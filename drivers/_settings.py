@@ -25,9 +25,14 @@ def _adapter_required(schema: dict[str, Any]) -> None:
 
 
 class DeviceSettings(BaseModel):
-    """Base of every adapter's settings: unknown keys are errors and a model never changes."""
+    """Base of every adapter's settings: unknown keys are errors and a model never changes.
 
-    model_config = ConfigDict(extra="forbid", frozen=True, json_schema_extra=_adapter_required)
+    Numbers given for text settings become text: YAML reads ``serial: 21234567`` (a Basler serial)
+    or ``axis: 1`` (a GCS axis) as integers.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True, coerce_numbers_to_str=True,
+                              json_schema_extra=_adapter_required)
 
 
 class SettingsError(ValueError):
