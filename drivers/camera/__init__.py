@@ -16,8 +16,8 @@ from drivers.camera._pylon import SATURATION, PylonCamera, ensure_emulated_camer
 from drivers.camera._settings import CameraSettings, PylonSettings
 from drivers.camera._triplet import CameraTriplet
 
-_SETTINGS: SettingsUnion[CameraSettings] = SettingsUnion(CameraSettings, "camera")
-ADAPTERS = tuple(_SETTINGS.models)
+_SETTINGS_UNION: SettingsUnion[CameraSettings] = SettingsUnion(CameraSettings, "camera")
+ADAPTERS = tuple(_SETTINGS_UNION.models)
 
 
 def create(settings: CameraSettings | Mapping[str, Any], *, name: str) -> TriggeredCamera:
@@ -35,7 +35,7 @@ def create(settings: CameraSettings | Mapping[str, Any], *, name: str) -> Trigge
     SettingsError
         For a mapping that is not valid settings (one line naming the adapter and the setting).
     """
-    checked = _SETTINGS.validate(settings, name=name)
+    checked = _SETTINGS_UNION.validate(settings, name=name)
     return PylonCamera(checked, name=name)
 
 

@@ -18,8 +18,8 @@ from drivers.interferometer._interface import BeamInterrupted, DatumLost, FeedGa
 from drivers.interferometer._layout import FrameLayout, StatusFrame, crc8_j1850, frame_crc
 from drivers.interferometer._settings import InterferometerSettings, SlcanSettings, SocketcandSettings
 
-_SETTINGS: SettingsUnion[InterferometerSettings] = SettingsUnion(InterferometerSettings, "interferometer")
-ADAPTERS = tuple(_SETTINGS.models)
+_SETTINGS_UNION: SettingsUnion[InterferometerSettings] = SettingsUnion(InterferometerSettings, "interferometer")
+ADAPTERS = tuple(_SETTINGS_UNION.models)
 
 
 def create(settings: InterferometerSettings | Mapping[str, Any], *, name: str = "interferometer") -> Interferometer:
@@ -37,7 +37,7 @@ def create(settings: InterferometerSettings | Mapping[str, Any], *, name: str = 
     SettingsError
         For a mapping that is not valid settings (one line naming the adapter and the setting).
     """
-    return CanInterferometer(_SETTINGS.validate(settings, name=name), name=name)
+    return CanInterferometer(_SETTINGS_UNION.validate(settings, name=name), name=name)
 
 
 __all__ = [

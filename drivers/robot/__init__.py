@@ -23,8 +23,8 @@ from drivers.robot._interface import (
 from drivers.robot._settings import RobotSettings, URRtdeSettings
 from drivers.robot._ur import URRobot
 
-_SETTINGS: SettingsUnion[RobotSettings] = SettingsUnion(RobotSettings, "robot")
-ADAPTERS = tuple(_SETTINGS.models)
+_SETTINGS_UNION: SettingsUnion[RobotSettings] = SettingsUnion(RobotSettings, "robot")
+ADAPTERS = tuple(_SETTINGS_UNION.models)
 
 
 def create(settings: RobotSettings | Mapping[str, Any], *, name: str = "robot", envelope: MotionEnvelope) -> Robot:
@@ -44,7 +44,7 @@ def create(settings: RobotSettings | Mapping[str, Any], *, name: str = "robot", 
     SettingsError
         For a mapping that is not valid settings (one line naming the adapter and the setting).
     """
-    checked = _SETTINGS.validate(settings, name=name)
+    checked = _SETTINGS_UNION.validate(settings, name=name)
     return URRobot(checked, name=name, envelope=envelope)
 
 

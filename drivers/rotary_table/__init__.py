@@ -23,8 +23,8 @@ from drivers.rotary_table._settings import (
     RotaryTableSettings,
 )
 
-_SETTINGS: SettingsUnion[RotaryTableSettings] = SettingsUnion(RotaryTableSettings, "rotary_table")
-ADAPTERS = tuple(_SETTINGS.models)
+_SETTINGS_UNION: SettingsUnion[RotaryTableSettings] = SettingsUnion(RotaryTableSettings, "rotary_table")
+ADAPTERS = tuple(_SETTINGS_UNION.models)
 
 
 def create(settings: RotaryTableSettings | Mapping[str, Any], *, name: str = "rotary_table") -> RotaryTable:
@@ -42,7 +42,7 @@ def create(settings: RotaryTableSettings | Mapping[str, Any], *, name: str = "ro
     SettingsError
         For a mapping that is not valid settings (one line naming the adapter and the setting).
     """
-    checked = _SETTINGS.validate(settings, name=name)
+    checked = _SETTINGS_UNION.validate(settings, name=name)
     if isinstance(checked, GcsSerialSettings):
         return GcsTable(checked, name=name)
     return ModbusTable(checked, name=name)
