@@ -121,15 +121,6 @@ class FrameLayout(BaseModel):
     def max_counts(self) -> int:
         return 2 ** (DISPLACEMENT_BITS - 1) - 1
 
-    # Transitional: the twins on main still build their layout through these two; removed together
-    # with drivers/_config.py once the twins carry their own layout (issue 11).
-    @classmethod
-    def from_dict(cls, data: object) -> FrameLayout:
-        return cls.model_validate(data or {})
-
-    def to_dict(self) -> dict:
-        return self.model_dump()
-
 
 def crc8_j1850(data: bytes) -> int:
     """CRC-8/SAE-J1850 (check value of ``b"123456789"`` is 0x4B)."""

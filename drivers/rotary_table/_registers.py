@@ -155,12 +155,3 @@ class RegisterMap(_Format):
             if start <= address < start + width:
                 return f"{name.replace('_', ' ')} register 0x{address:04x}"
         return f"register 0x{address:04x}"
-
-    # Transitional: the twins on main still build their map through these two; removed together
-    # with drivers/_config.py once the twins carry their own register map (issue 11).
-    @classmethod
-    def from_config(cls, data: object) -> RegisterMap:
-        return data if isinstance(data, RegisterMap) else cls.model_validate(data or {})
-
-    def to_config(self) -> dict:
-        return self.model_dump()
