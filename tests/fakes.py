@@ -32,15 +32,15 @@ COMPONENTS = ("x", "y", "z", "a", "b", "c")
 
 
 def station_dict(truth_log: str | None = None, **overrides) -> dict:
+    """A valid station file for the fake cell. Its device entries name real adapters with loopback
+    settings (the station must validate), but tests hand ``StationRuntime`` the fakes instead."""
     data = {
         "name": "fake cell",
         "devices": {
-            # Real adapters' settings (the station file is validated against them); tests pass the
-            # fakes to StationRuntime(devices=...), so nothing here is ever opened.
-            "robot": {"adapter": "ur_rtde", "host": "127.0.0.2"},
+            "robot": {"adapter": "ur_rtde", "host": "127.0.0.1"},
             "cameras": {s: {"adapter": "pylon", "serial": f"fake-{s}"} for s in "xyz"},
-            "rotary_table": {"adapter": "modbus_tcp", "host": "127.0.0.1"},
-            "interferometer": {"adapter": "socketcand", "host": "127.0.0.1", "port": 29536},
+            "rotary_table": {"adapter": "modbus_tcp", "host": "127.0.0.1", "port": 5020},
+            "interferometer": {"adapter": "socketcand", "host": "127.0.0.1", "port": 29536, "channel": "can0"},
         },
         "geometry": {"screens": {s: {"origin": [0, 0, 0], "u": [1, 0, 0], "v": [0, 1, 0]} for s in "xyz"}},
         "frames": {"reference_tcp_pose": REFERENCE_TCP, "tcp_offset": [0, 0, 0.08, 0, 0, 0],

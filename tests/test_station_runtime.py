@@ -28,7 +28,7 @@ def test_robot_gets_its_settings_the_station_envelope_and_the_opr_as_tcp(monkeyp
     runtime = StationRuntime(station)
     robot = runtime.robot
     assert robot is made["robot"] and made["name"] == "robot"
-    assert isinstance(made["settings"], URRtdeSettings) and made["settings"].host == "127.0.0.2"
+    assert isinstance(made["settings"], URRtdeSettings) and made["settings"].host == "127.0.0.1"
     # The envelope is the station's, so the driver refuses exactly what the station refuses.
     assert made["envelope"] is runtime.envelope
     np.testing.assert_array_equal(runtime.envelope.box_max, station.envelope.box_max)
