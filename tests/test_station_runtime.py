@@ -71,7 +71,7 @@ def test_a_device_the_station_lacks_is_a_typed_error():
     station = StationFile.model_validate(station_dict(devices={**station_dict()["devices"], "rotary_table": None}))
     runtime = StationRuntime(station)
     with pytest.raises(DeviceConnectionError, match="the station file configures no rotary_table"):
-        runtime.table
+        runtime.device("rotary_table")
     with pytest.raises(DeviceConnectionError, match="no such device role"):
         runtime.device("camera:w")
 
@@ -85,7 +85,7 @@ def test_an_unreachable_device_is_a_connection_error_naming_the_role():
                                                              "port": free_port, "timeout": 0.2, "retries": 0}}
     runtime = StationRuntime(StationFile.model_validate(station_dict(devices=devices)))
     with pytest.raises(DeviceConnectionError, match="cannot be reached") as caught:
-        runtime.table
+        runtime.device("rotary_table")
     assert caught.value.device == "rotary_table"
     assert runtime.opened("rotary_table") is None
     runtime.close()
