@@ -74,7 +74,7 @@ def _walk(model: type[BaseModel], loc: tuple) -> tuple[tuple, list[Any]]:
 def _fields(annotation: Any) -> dict[str, Any]:
     """Field name → annotation of the model or dataclass inside ``annotation`` (``X | None`` too);
     for a union of several models, none (the tag decides, see ``_tagged``)."""
-    candidates = [arg for arg in _members(annotation) if isinstance(arg, type)]
+    candidates = [arg for arg in _members(annotation) if _is_class(arg)]
     if len(candidates) != 1:
         return {}
     kind = candidates[0]
@@ -89,7 +89,7 @@ def _tagged(annotation: Any) -> dict[str, type[BaseModel]]:
     """The models of a union discriminated on ``adapter`` (a lone such model counts), by tag."""
     found: dict[str, type[BaseModel]] = {}
     for member in _members(annotation):
-        if isinstance(member, type) and issubclass(member, BaseModel) and "adapter" in member.model_fields:
+        if _is_class(member) and issubclass(member, BaseModel) and "adapter" in member.model_fields:
             for tag in get_args(member.model_fields["adapter"].annotation):
                 found[tag] = member
     return found
@@ -103,6 +103,11 @@ def _members(annotation: Any) -> list[Any]:
     if get_origin(annotation) in (Union, UnionType):
         return [member for arg in get_args(annotation) for member in _members(arg)]
     return [] if annotation is None or annotation is type(None) else [annotation]
+
+
+def _is_class(annotation: Any) -> bool:
+    """A plain class (``list[X]`` passes for a type on some Python versions)."""
+    return isinstance(annotation, type) and get_origin(annotation) is None
 
 
 def _element(annotation: Any) -> Any:
