@@ -2,6 +2,9 @@
 
 This package never imports ``instrument``: the twins' physics is written independently of the
 measurement core, so a convention error on either side fails a test instead of cancelling out.
+For the same reason it takes from ``drivers`` only the shared errors and the camera interface:
+each twin encodes its wire protocol (register map, word order, scaling, CAN frames, CRC) with its
+own code, from the device documentation. See ``docs/simulated_cell.md`` for the cell.
 """
 
 from sim_devices._process import TwinProcess, TwinProcessError

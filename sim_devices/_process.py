@@ -6,7 +6,7 @@ from a factory, starts it, sends back its endpoints, then serves control calls u
 (or until the parent goes away). It only ever stops the process it started.
 
 A host object has ``start() -> dict`` (endpoints), ``stop() -> None`` and
-``control(command: str, **kwargs) -> Any`` (the twin's control API: arm faults, read truth ...).
+``control(command: str, /, **kwargs) -> Any`` (the twin's control API: arm faults, read truth ...).
 """
 
 from __future__ import annotations
@@ -15,6 +15,8 @@ import importlib
 import multiprocessing
 import threading
 import traceback
+from multiprocessing.connection import Connection
+from multiprocessing.context import SpawnProcess
 from typing import Any
 
 
@@ -22,7 +24,7 @@ class TwinProcessError(RuntimeError):
     """The twin process failed to start, died, or a control call failed inside it."""
 
 
-def _child_main(factory_path: str, kwargs: dict[str, Any], conn) -> None:
+def _child_main(factory_path: str, kwargs: dict[str, Any], conn: Connection) -> None:
     host = None
     try:
         module_name, _, attr = factory_path.partition(":")
@@ -81,15 +83,16 @@ class TwinProcess:
         self.start_timeout = start_timeout
         self.call_timeout = call_timeout
         self.endpoints: dict[str, Any] = {}
-        self._process = None
-        self._conn = None
+        self._process: SpawnProcess | None = None
+        self._conn: Connection | None = None
         self._lock = threading.Lock()
 
     def start(self) -> dict[str, Any]:
         ctx = multiprocessing.get_context("spawn")
         parent, child = ctx.Pipe()
-        self._process = ctx.Process(target=_child_main, args=(self.factory, self.kwargs, child), daemon=True)
-        self._process.start()
+        process = ctx.Process(target=_child_main, args=(self.factory, self.kwargs, child), daemon=True)
+        self._process = process
+        process.start()
         child.close()
         self._conn = parent
         if not parent.poll(self.start_timeout):
@@ -106,8 +109,12 @@ class TwinProcess:
         self.endpoints = reply["endpoints"]
         return self.endpoints
 
-    def call(self, command: str, timeout: float | None = None, **kwargs: Any) -> Any:
-        """Run ``host.control(command, **kwargs)`` in the child and return its result."""
+    def call(self, command: str, /, timeout: float | None = None, **kwargs: Any) -> Any:
+        """Run ``host.control(command, **kwargs)`` in the child and return its result.
+
+        ``command`` is positional-only, so ``kwargs`` may hold a ``command`` of their own (the
+        cell's ``device`` command forwards one to a twin). ``timeout`` (s) overrides ``call_timeout``.
+        """
         with self._lock:
             if self._conn is None or self._process is None or not self._process.is_alive():
                 raise TwinProcessError(f"twin {self.factory} is not running")

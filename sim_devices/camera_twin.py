@@ -14,14 +14,16 @@ from __future__ import annotations
 import os
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 
-from drivers._errors import DeviceConnectionError, DeviceTimeout
+from drivers import DeviceConnectionError, DeviceTimeout
 from drivers.camera import Frame, GrabFailed, Roi
+from sim_devices.control import dispatch
 from sim_devices.faults import FaultKind, FaultPlan
 from sim_devices.optics import AXIS_NAMES, OpticalBench
 from sim_devices.renderer import Renderer
@@ -80,18 +82,29 @@ class CameraFileTwin:
             self.world.unsubscribe(self._on_state)
             self._subscribed = False
 
-    def control(self, command: str, **kwargs: Any) -> Any:
-        """``laser`` (on: bool), ``exposure`` (scale: float), ``render`` (re-render now), ``files``."""
-        if command == "laser":
-            self.laser_on = bool(kwargs["on"])
-        elif command == "exposure":
-            self.exposure_scale = float(kwargs["scale"])
-        elif command == "files":
-            return {name: str(path) for name, path in self.paths.items()}
-        elif command != "render":
-            raise ValueError(f"camera twin: unknown command {command!r}; expected laser, exposure, render, files")
+    def set_laser(self, on: bool) -> dict[str, int]:
+        """Switch the OPR's lasers (off: the screens show only the background) and re-render now."""
+        self.laser_on = bool(on)
+        return self.render()
+
+    def set_exposure(self, scale: float) -> dict[str, int]:
+        """Scale the rendered signal (1: nominal) and re-render now."""
+        self.exposure_scale = float(scale)
+        return self.render()
+
+    def render(self) -> dict[str, int]:
+        """Render the current pose now, settled or not."""
         self._on_state(self.world.state(), force=True)
         return {"frames_written": self.frames_written}
+
+    def files(self) -> dict[str, str]:
+        return {name: str(path) for name, path in self.paths.items()}
+
+    def control(self, command: str, /, **kwargs: Any) -> Any:
+        """``laser`` (on: bool), ``exposure`` (scale: float), ``render`` (re-render now), ``files``."""
+        commands: dict[str, Callable[..., Any]] = {"laser": self.set_laser, "exposure": self.set_exposure,
+                                                   "render": self.render, "files": self.files}
+        return dispatch(commands, command, kwargs, "camera twin")
 
     # ------------------------------------------------------------------ rendering
     def _on_state(self, state: WorldState, force: bool = False) -> None:
@@ -211,7 +224,7 @@ class SimCamera:
 
     def grab(self, timeout: float = 2.0) -> Frame:
         """Trigger and retrieve, retrying incomplete buffers and timeouts a bounded number of times."""
-        last: Exception | None = None
+        last: GrabFailed | DeviceTimeout | None = None
         for _attempt in range(self.retries + 1):
             self.trigger()
             try:

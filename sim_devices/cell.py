@@ -4,9 +4,13 @@
 rotary table twins (Modbus TCP/RTU, GCS serial) and the interferometer twins (socketcand, slcan),
 starts them, writes a station YAML with every endpoint, and serves a control channel (the
 simulated operator: re-mount the OPR on the table, re-aim the interferometer; fault injection;
-ground truth). ``SimCell`` runs a ``CellHost`` in a child process (the ur_rtde client must never
-share a process with its twin) and is what tests and ``instrument run --station sim`` use;
-``instrument sim`` runs one in the foreground.
+ground truth). Its twins are typed attributes (``robot``, ``rotary_table``, ``interferometer``,
+``cameras``) and its control API is typed methods; ``control(command, **args)`` reaches the same
+methods by name, through one table, for the JSON channel and the child-process pipe.
+
+``SimCell`` runs a ``CellHost`` in a child process (the ur_rtde client must never share a process
+with its twin) and offers the same typed methods; it is what tests and ``instrument run --station
+sim`` use; ``instrument sim`` runs a ``CellHost`` in the foreground.
 """
 
 from __future__ import annotations
@@ -14,19 +18,46 @@ from __future__ import annotations
 import socket
 import tempfile
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any, Literal, Protocol, TypeVar
 
 import numpy as np
 import yaml
 
+from sim_devices._config import checked_fields
 from sim_devices._process import TwinProcess
 from sim_devices._transforms import invert, matrix_to_pose6
-from sim_devices.control import ControlClient, ControlServer
-from sim_devices.world import World, WorldConfig
+from sim_devices.control import ControlClient, ControlServer, dispatch
+from sim_devices.faults import FaultKind, FaultPlan
+from sim_devices.world import Axis, World, WorldConfig
+
+if TYPE_CHECKING:  # imported when the cell starts: a SimCell's parent process never needs the twins' modules
+    from sim_devices.camera_twin import CameraFileTwin
+    from sim_devices.interferometer import InterferometerTwin
+    from sim_devices.optics import OpticalBench
+    from sim_devices.rotary_table import RotaryTableTwin
+    from sim_devices.ur import URControllerTwin
 
 UR_PORTS = (30004, 29999, 30003)
+
+TwinName = Literal["cameras", "robot", "rotary_table", "interferometer"]
+TWIN_NAMES: tuple[TwinName, ...] = ("cameras", "robot", "rotary_table", "interferometer")
+
+
+class Twin(Protocol):
+    """What the cell needs of a twin: start (→ endpoints), stop, and a control API by name."""
+
+    def start(self) -> dict[str, Any]: ...
+
+    def stop(self) -> None: ...
+
+    def control(self, command: str, /, **kwargs: Any) -> Any: ...
+
+
+_TwinT = TypeVar("_TwinT", bound=Twin)
+_PartT = TypeVar("_PartT")
 
 
 def free_loopback_host(first: int = 2, last: int = 254, exclude: tuple[str, ...] = ()) -> str:
@@ -50,10 +81,36 @@ def free_loopback_host(first: int = 2, last: int = 254, exclude: tuple[str, ...]
     raise RuntimeError("no loopback address with the UR ports free in 127.0.0.2-254")
 
 
-def _scaled_clock(scale: float):
+def _scaled_clock(scale: float) -> Callable[[], float]:
     """A monotonic clock that runs ``scale`` times faster than wall time."""
     origin = time.monotonic()
     return lambda: origin + (time.monotonic() - origin) * scale
+
+
+@dataclass(frozen=True)
+class CellConfig:
+    """The sections of a cell configuration (``instrument sim --config``); each is a mapping that its
+    own twin checks when the cell starts (unknown keys are refused there, unknown sections here)."""
+
+    world: Mapping[str, Any] = field(default_factory=dict)
+    optics: Mapping[str, Any] = field(default_factory=dict)
+    robot: Mapping[str, Any] = field(default_factory=dict)
+    rotary_table: Mapping[str, Any] = field(default_factory=dict)
+    interferometer: Mapping[str, Any] = field(default_factory=dict)
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any] | None) -> CellConfig:
+        sections = checked_fields(cls, data, "cell config")
+        for name, value in sections.items():
+            if value is None:
+                sections[name] = {}
+            elif not isinstance(value, Mapping):
+                raise ValueError(f"cell config: section {name} must be a mapping, got {type(value).__name__}")
+        return cls(**sections)
+
+
+class CellNotRunning(RuntimeError):
+    """A control method of a cell that is not running (not started, or stopped)."""
 
 
 class CellHost:
@@ -70,7 +127,11 @@ class CellHost:
     time_scale : float
         Simulated time runs this many times faster than wall time (robot and table motion).
     config : mapping, optional
-        Per-twin settings: ``world``, ``optics``, ``robot``, ``rotary_table``, ``interferometer``.
+        Per-twin settings (``CellConfig``): ``world``, ``optics``, ``robot``, ``rotary_table``,
+        ``interferometer``. Checked when the cell starts (a bad setting is a ``ValueError``).
+
+    After ``start()`` the twins are the typed attributes ``world``, ``bench``, ``cameras``,
+    ``robot``, ``rotary_table`` and ``interferometer`` (``CellNotRunning`` before and after).
     """
 
     def __init__(self, directory: str, seed: int = 0, robot_host: str | None = None, time_scale: float = 1.0,
@@ -80,47 +141,114 @@ class CellHost:
         self.robot_host = robot_host
         self.time_scale = float(time_scale)
         self.config = dict(config or {})
-        self.world: World | None = None
-        self.bench: Any = None
-        self._twins: dict[str, Any] = {}
+        self._world: World | None = None
+        self._bench: OpticalBench | None = None
+        self._cameras: CameraFileTwin | None = None
+        self._robot: URControllerTwin | None = None
+        self._rotary_table: RotaryTableTwin | None = None
+        self._interferometer: InterferometerTwin | None = None
+        self._started: list[tuple[str, Twin]] = []  # in start order; stopped in reverse
         self._control: ControlServer | None = None
         self.endpoints: dict[str, Any] = {}
+        # The control API by name (the JSON channel and TwinProcess): one explicit table.
+        self._commands: dict[str, Callable[..., Any]] = {
+            "ping": self.ping,
+            "mount_on_table": self.mount_on_table,
+            "mount_on_robot": self.mount_on_robot,
+            "align_interferometer": self.align_interferometer,
+            "inject_fault": self.inject_fault,
+            "clear_faults": self.clear_faults,
+            "fired_faults": self.fired_faults,
+            "truth": self.truth,
+            "true_opr_in_m": self.true_opr_in_m,
+            "describe": self.describe,
+            "device": self.forward,
+        }
+
+    # ------------------------------------------------------------------------------ the twins
+    @property
+    def world(self) -> World:
+        return self._running(self._world, "world")
+
+    @property
+    def bench(self) -> OpticalBench:
+        return self._running(self._bench, "optical bench")
+
+    @property
+    def cameras(self) -> CameraFileTwin:
+        return self._running(self._cameras, "camera twin")
+
+    @property
+    def robot(self) -> URControllerTwin:
+        return self._running(self._robot, "robot twin")
+
+    @property
+    def rotary_table(self) -> RotaryTableTwin:
+        return self._running(self._rotary_table, "rotary table twin")
+
+    @property
+    def interferometer(self) -> InterferometerTwin:
+        return self._running(self._interferometer, "interferometer twin")
+
+    @staticmethod
+    def _running(part: _PartT | None, what: str) -> _PartT:
+        if part is None:
+            raise CellNotRunning(f"simulated cell: the {what} is not running (start the cell first)")
+        return part
+
+    def twin(self, name: str) -> Twin:
+        """One twin by name (``cameras``, ``robot``, ``rotary_table``, ``interferometer``)."""
+        twins: dict[str, Callable[[], Twin]] = {"cameras": lambda: self.cameras, "robot": lambda: self.robot,
+                                                "rotary_table": lambda: self.rotary_table,
+                                                "interferometer": lambda: self.interferometer}
+        if name not in twins:
+            raise ValueError(f"simulated cell: no twin {name!r}; expected one of {', '.join(TWIN_NAMES)}")
+        return twins[name]()
 
     # ------------------------------------------------------------------------------ lifecycle
     def start(self) -> dict[str, Any]:
+        """Build and start every twin, the control channel and the station file; returns the endpoints.
+
+        Raises
+        ------
+        ValueError
+            A bad setting in the cell configuration (one line naming it). Nothing stays running.
+        """
         from sim_devices.camera_twin import CameraFileTwin
         from sim_devices.interferometer import InterferometerTwin
         from sim_devices.optics import OpticalBench
         from sim_devices.rotary_table import RotaryTableTwin
         from sim_devices.ur import URControllerTwin
 
+        config = CellConfig.from_dict(self.config)
         self.directory.mkdir(parents=True, exist_ok=True)
-        world_cfg = WorldConfig.from_dict({**dict(self.config.get("world") or {}), "seed": self.seed})
-        self.world = world = World(world_cfg, truth_path=self.directory / "truth.jsonl")
+        world_cfg = WorldConfig.from_dict({**config.world, "seed": self.seed})
+        self._world = world = World(world_cfg, truth_path=self.directory / "truth.jsonl")
         try:
-            self.bench = OpticalBench(world, self.config.get("optics"))
-            self._add("cameras", CameraFileTwin(world, self.bench, self.directory / "frames"))
+            self._bench = bench = OpticalBench(world, config.optics)
+            self._cameras = self._add("cameras", CameraFileTwin(world, bench, self.directory / "frames"))
             host = self.robot_host or free_loopback_host()
-            self._add("robot", URControllerTwin(world, host, {"time_scale": self.time_scale, "seed": self.seed,
-                                                             **dict(self.config.get("robot") or {})}))
-            self._add("rotary_table", RotaryTableTwin(world, self.config.get("rotary_table"),
-                                                      clock=_scaled_clock(self.time_scale)))
-            self._add("interferometer", InterferometerTwin(world, self.config.get("interferometer")))
+            robot_config = {"time_scale": self.time_scale, "seed": self.seed, **config.robot}
+            self._robot = self._add("robot", URControllerTwin(world, host, robot_config))
+            self._rotary_table = self._add("rotary_table", RotaryTableTwin(world, config.rotary_table,
+                                                                           clock=_scaled_clock(self.time_scale)))
+            self._interferometer = self._add("interferometer", InterferometerTwin(world, config.interferometer))
             self._control = ControlServer(self.control)
             control_host, control_port = self._control.start()
             self.endpoints["control"] = {"host": control_host, "port": control_port}
             self.endpoints["truth_log"] = str(self.directory / "truth.jsonl")
             self.endpoints["station"] = str(self.write_station())
             world.truth.record("cell", time=world.clock(), describe=world.describe(),
-                               optics=self.bench.true_description(), endpoints=self.endpoints)
+                               optics=bench.true_description(), endpoints=self.endpoints)
         except BaseException:
             self.stop()
             raise
         return self.endpoints
 
-    def _add(self, name: str, twin: Any) -> None:
-        self._twins[name] = twin
+    def _add(self, name: str, twin: _TwinT) -> _TwinT:
+        self._started.append((name, twin))
         self.endpoints[name] = twin.start()
+        return twin
 
     def stop(self) -> None:
         """Stop everything started, even when one part fails to stop; then report the failures."""
@@ -131,41 +259,122 @@ class CellHost:
                 control.stop()
             except Exception as exc:
                 problems.append(f"control channel: {type(exc).__name__}: {exc}")
-        for name in reversed(list(self._twins)):
+        while self._started:
+            name, twin = self._started.pop()
             try:
-                self._twins.pop(name).stop()
+                twin.stop()
             except Exception as exc:
                 problems.append(f"{name}: {type(exc).__name__}: {exc}")
-        if self.world is not None:
-            self.world.truth.close()
+        self._cameras = self._robot = self._rotary_table = self._interferometer = None
+        self._bench = None
+        if self._world is not None:
+            world, self._world = self._world, None
+            world.truth.close()
         if problems:
             raise RuntimeError("simulated cell: stopping failed for " + "; ".join(problems))
 
     # ------------------------------------------------------------------------------ control API
-    def control(self, command: str, **args: Any) -> Any:
+    def control(self, command: str, /, **args: Any) -> Any:
+        """Run the control method named ``command`` with ``args`` (the JSON channel, ``TwinProcess``).
+
+        Raises
+        ------
+        ValueError
+            Unknown command (the known ones are named) or arguments that do not fit it.
+        """
+        return dispatch(self._commands, command, args, "simulated cell")
+
+    def ping(self) -> str:
+        return "pong"
+
+    def mount_on_table(self, axis: Axis) -> str:
+        """The operator puts the OPR on the rotary table, its axis along M's ``axis``; returns the mount."""
         world = self.world
-        assert world is not None
-        if command == "ping":
-            return "pong"
-        if command == "mount_on_table":
-            world.mount_on_table(args["axis"])
-            self._twins["rotary_table"].sync()  # the OPR now takes the table's angle at once
-            return world.mount
-        if command == "mount_on_robot":
-            world.mount_on_robot()
-            return world.mount
-        if command == "align_interferometer":
-            return self._twins["interferometer"].control("align", axis=args["axis"])
-        if command == "truth":
-            return world.truth.entries(args.get("event"))[-int(args.get("last", 1000)):]
-        if command == "true_opr_in_m":
-            return world.opr_in_m().tolist()
-        if command == "describe":
-            return {"world": world.describe(), "optics": self.bench.true_description()}
-        if command == "device":  # forward to one twin's own control API
-            twin = self._twins[args.pop("device")]
-            return twin.control(args.pop("command"), **args)
-        raise ValueError(f"unknown cell command {command!r}")
+        world.mount_on_table(axis)
+        self.rotary_table.sync()  # the OPR now takes the table's angle at once
+        return world.mount
+
+    def mount_on_robot(self) -> str:
+        """The operator puts the OPR back on the robot flange; returns the mount."""
+        world = self.world
+        world.mount_on_robot()
+        return world.mount
+
+    def align_interferometer(self, axis: Axis) -> dict[str, Any]:
+        """The operator re-aims the interferometer along M's ``axis`` (its count is lost); returns its truth."""
+        return self.interferometer.align(axis)
+
+    def _fault_plan(self, device: str, transport: str | None) -> FaultPlan:
+        if device == "robot" and transport is None:
+            return self.robot.faults
+        if device == "rotary_table":
+            return self.rotary_table.faults(transport or "modbus_tcp")
+        if device == "interferometer":
+            return self.interferometer.faults
+        if device == "robot":
+            raise ValueError(f"simulated cell: the robot twin has one fault plan; got transport {transport!r}")
+        if device == "cameras":
+            raise ValueError("simulated cell: the camera file twin takes no faults (the pylon emulator's own "
+                             "ForceFailedBuffer is driven through the camera adapter)")
+        raise ValueError(f"simulated cell: no twin {device!r} takes faults; expected robot, rotary_table or "
+                         "interferometer")
+
+    def inject_fault(self, device: TwinName, kind: FaultKind | str, count: int = 1, transport: str | None = None,
+                     **params: Any) -> list[str]:
+        """Arm a fault on one twin; returns the kinds armed on that fault plan now.
+
+        Parameters
+        ----------
+        device : "robot", "rotary_table" or "interferometer"
+        kind : FaultKind or str
+            What happens (``sim_devices.faults.FaultKind``); which kinds a twin takes and their
+            ``params`` are in its docs page.
+        count : int
+            How many times it fires (-1: until cleared).
+        transport : str, optional
+            Rotary table: the endpoint (``modbus_tcp``, the station's, by default; ``modbus_rtu``,
+            ``gcs``). Interferometer: the transport a ``disconnect`` hits (default: all).
+        **params
+            The fault's parameters (``seconds``, ``code``, ``frames``, ``at`` ...).
+        """
+        if device == "interferometer" and transport is not None:
+            params["transport"] = transport
+            transport = None
+        plan = self._fault_plan(device, transport)
+        plan.arm(kind, int(count), **params)
+        return [armed.kind.value for armed in plan.armed()]
+
+    def clear_faults(self, device: TwinName, transport: str | None = None) -> list[str]:
+        """Disarm every fault of one twin (the robot also leaves a safety stop); returns what is still armed."""
+        if device == "robot" and transport is None:
+            self.robot.clear_faults()
+            return []
+        plan = self._fault_plan(device, transport)
+        plan.clear()
+        return [armed.kind.value for armed in plan.armed()]
+
+    def fired_faults(self, device: TwinName, transport: str | None = None) -> list[tuple[str, dict[str, Any]]]:
+        """Every fault that fired on one twin (endpoint) so far, oldest first: ``(kind, params)``."""
+        return [(kind.value, params) for kind, params in self._fault_plan(device, transport).fired()]
+
+    def truth(self, event: str | None = None, last: int = 1000) -> list[dict[str, Any]]:
+        """The last ``last`` entries of the ground-truth log (of one ``event`` kind, or all)."""
+        if last <= 0:
+            return []
+        return self.world.truth.entries(event)[-int(last):]
+
+    def true_opr_in_m(self) -> list[list[float]]:
+        """The OPR's true pose in M now (4×4)."""
+        return self.world.opr_in_m().tolist()
+
+    def describe(self) -> dict[str, Any]:
+        """The world's and the optics' true description (for reports and tests)."""
+        return {"world": self.world.describe(), "optics": self.bench.true_description()}
+
+    def forward(self, device: TwinName, command: str, **args: Any) -> Any:
+        """Run ``command`` of one twin's own control API (``{"command": "device", "args": {"device": ...,
+        "command": ..., ...}}`` on the channel)."""
+        return self.twin(device).control(command, **args)
 
     # ------------------------------------------------------------------------------ station file
     def station(self) -> dict[str, Any]:
@@ -222,16 +431,18 @@ class CellHost:
 
 
 class SimCell:
-    """The simulated cell in a child process, as a context manager.
+    """The simulated cell in a child process, as a context manager, with the typed control methods
+    of ``CellHost`` (each runs in the child).
 
     >>> with SimCell(seed=1) as cell:          # doctest: +SKIP
     ...     station = cell.station_path         # a station YAML for the drivers
-    ...     cell.control("mount_on_table", axis="x")
+    ...     cell.mount_on_table("x")
+    ...     cell.inject_fault("rotary_table", "exception", code=4)
     """
 
     def __init__(self, seed: int = 0, directory: str | Path | None = None, robot_host: str | None = None,
                  time_scale: float = 1.0, config: Mapping[str, Any] | None = None, start_timeout: float = 60.0):
-        self._tmp = None
+        self._tmp: tempfile.TemporaryDirectory[str] | None = None
         if directory is None:
             self._tmp = tempfile.TemporaryDirectory(prefix="simcell-")
             directory = self._tmp.name
@@ -262,14 +473,53 @@ class SimCell:
     def truth_path(self) -> Path:
         return Path(self.endpoints["truth_log"])
 
-    def control(self, command: str, **args: Any) -> Any:
+    def control(self, command: str, /, **args: Any) -> Any:
+        """``CellHost.control`` in the child: any control method by name."""
         return self._process.call(command, **args)
 
     def client(self) -> ControlClient:
+        """A client of the cell's JSON control channel (the same commands, over loopback TCP)."""
         return ControlClient(self.endpoints["control"]["host"], self.endpoints["control"]["port"])
+
+    # ------------------------------------------------------------------------------ typed control
+    # The same methods and signatures as CellHost's (a test compares them).
+    def ping(self) -> str:
+        return str(self.control("ping"))
+
+    def mount_on_table(self, axis: Axis) -> str:
+        return str(self.control("mount_on_table", axis=axis))
+
+    def mount_on_robot(self) -> str:
+        return str(self.control("mount_on_robot"))
+
+    def align_interferometer(self, axis: Axis) -> dict[str, Any]:
+        return dict(self.control("align_interferometer", axis=axis))
+
+    def inject_fault(self, device: TwinName, kind: FaultKind | str, count: int = 1, transport: str | None = None,
+                     **params: Any) -> list[str]:
+        return list(self.control("inject_fault", device=device, kind=str(kind), count=count, transport=transport,
+                                 **params))
+
+    def clear_faults(self, device: TwinName, transport: str | None = None) -> list[str]:
+        return list(self.control("clear_faults", device=device, transport=transport))
+
+    def fired_faults(self, device: TwinName, transport: str | None = None) -> list[tuple[str, dict[str, Any]]]:
+        return list(self.control("fired_faults", device=device, transport=transport))
+
+    def truth(self, event: str | None = None, last: int = 1000) -> list[dict[str, Any]]:
+        return list(self.control("truth", event=event, last=last))
+
+    def true_opr_in_m(self) -> list[list[float]]:
+        return list(self.control("true_opr_in_m"))
+
+    def describe(self) -> dict[str, Any]:
+        return dict(self.control("describe"))
+
+    def forward(self, device: TwinName, command: str, **args: Any) -> Any:
+        return self.control("device", device=device, command=command, **args)
 
     def __enter__(self) -> SimCell:
         return self.start()
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.stop()

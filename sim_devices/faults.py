@@ -29,6 +29,15 @@ class FaultKind(StrEnum):
     SLOW = "slow"  # every answer is slowed (params: seconds)
 
 
+def fault_kind(kind: FaultKind | str) -> FaultKind:
+    """``kind`` as a ``FaultKind``; a ValueError naming the known kinds if it is none of them."""
+    try:
+        return FaultKind(kind)
+    except ValueError:
+        known = ", ".join(k.value for k in FaultKind)
+        raise ValueError(f"unknown fault kind {kind!r}; expected one of {known}") from None
+
+
 @dataclass
 class ArmedFault:
     kind: FaultKind
@@ -46,7 +55,7 @@ class FaultPlan:
 
     def arm(self, kind: FaultKind | str, count: int = 1, **params: Any) -> None:
         """Arm ``kind`` to fire ``count`` times (-1: until cleared)."""
-        kind = FaultKind(kind)
+        kind = fault_kind(kind)
         if count == 0 or count < -1:
             raise ValueError(f"fault count must be positive or -1, got {count}")
         with self._lock:
@@ -54,7 +63,7 @@ class FaultPlan:
 
     def take(self, *kinds: FaultKind | str) -> ArmedFault | None:
         """Consume one firing of the first armed fault among ``kinds``; None when none is armed."""
-        wanted = {FaultKind(k) for k in kinds}
+        wanted = {fault_kind(k) for k in kinds}
         with self._lock:
             for armed in self._armed:
                 if armed.kind in wanted:
@@ -68,7 +77,7 @@ class FaultPlan:
 
     def peek(self, *kinds: FaultKind | str) -> ArmedFault | None:
         """The first armed fault among ``kinds`` without consuming it."""
-        wanted = {FaultKind(k) for k in kinds}
+        wanted = {fault_kind(k) for k in kinds}
         with self._lock:
             for armed in self._armed:
                 if armed.kind in wanted:
@@ -77,7 +86,7 @@ class FaultPlan:
 
     def clear(self, *kinds: FaultKind | str) -> None:
         """Disarm ``kinds`` (all faults when none is given)."""
-        wanted = {FaultKind(k) for k in kinds}
+        wanted = {fault_kind(k) for k in kinds}
         with self._lock:
             self._armed = [a for a in self._armed if wanted and a.kind not in wanted]
 

@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers._config import checked_fields
+from sim_devices._config import checked_fields
 from sim_devices._transforms import rotvec_to_matrix
 
 AXIS_NAMES = ("x", "y", "z")
@@ -340,7 +340,7 @@ def _true_camera(nominal_h: np.ndarray, rng: np.random.Generator, cfg: OpticsCon
     k2 = float(rng.normal(0.0, cfg.distortion_k2_std))
     width, height = cfg.size_px
     centre = np.array([(width - 1) / 2.0, (height - 1) / 2.0]) + rng.normal(0.0, cfg.distortion_centre_std_px, 2)
-    return CameraModel(tuple(cfg.size_px), h @ centred, k1, k2, centre, cfg.distortion_r_norm_px)
+    return CameraModel((int(width), int(height)), h @ centred, k1, k2, centre, cfg.distortion_r_norm_px)
 
 
 def _true_emitter(name: str, rng: np.random.Generator, cfg: OpticsConfig) -> Emitter:

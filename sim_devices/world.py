@@ -31,7 +31,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from drivers._config import checked_fields
+from sim_devices._config import checked_fields
 from sim_devices._transforms import (
     invert,
     make_transform,

@@ -3,6 +3,7 @@ foreground with a clean stop on SIGTERM, and `instrument run --station sim`."""
 
 from __future__ import annotations
 
+import inspect
 import json
 import os
 import signal
@@ -10,15 +11,17 @@ import socket
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import psutil
 import pytest
 import yaml
+from pymodbus.client import ModbusTcpClient
 
 from procedures.cli import main
-from sim_devices.cell import UR_PORTS, SimCell
-from sim_devices.control import ControlClient
+from sim_devices.cell import UR_PORTS, CellHost, CellNotRunning, SimCell
+from sim_devices.control import ControlClient, ControlError
 
 pytestmark = pytest.mark.slow
 
@@ -111,8 +114,6 @@ def test_run_with_station_sim_starts_its_own_cell(tmp_path, capsys):
 
 
 def test_stop_stops_every_twin_even_when_one_fails(tmp_path):
-    from sim_devices.cell import CellHost
-
     stopped = []
 
     class Twin:
@@ -125,11 +126,11 @@ def test_stop_stops_every_twin_even_when_one_fails(tmp_path):
                 raise OSError("port busy")
 
     host = CellHost(str(tmp_path))
-    host._twins = {"cameras": Twin("cameras"), "robot": Twin("robot", fail=True), "table": Twin("table")}
+    host._started = [("cameras", Twin("cameras")), ("robot", Twin("robot", fail=True)), ("table", Twin("table"))]
     with pytest.raises(RuntimeError, match="stopping failed for robot: OSError: port busy"):
         host.stop()
     assert stopped == ["table", "robot", "cameras"]  # reverse start order, none skipped
-    assert not host._twins
+    assert not host._started
 
 
 def test_instrument_sim_reports_a_bad_cell_config_in_one_line(tmp_path, capsys):
@@ -138,3 +139,73 @@ def test_instrument_sim_reports_a_bad_cell_config_in_one_line(tmp_path, capsys):
     assert main(["sim", "--config", str(config), "--directory", str(tmp_path / "cell")]) == 2
     err = capsys.readouterr().err
     assert "UR twin config: unknown field(s) ['repeatability_std']" in err and "Traceback" not in err
+
+
+def test_instrument_sim_reports_an_unknown_cell_section_in_one_line(tmp_path, capsys):
+    config = tmp_path / "cell.yaml"
+    config.write_text("robto:\n  approach_bias: 1.0e-6\n", encoding="utf-8")
+    assert main(["sim", "--config", str(config), "--directory", str(tmp_path / "cell")]) == 2
+    err = capsys.readouterr().err
+    assert "cell config: unknown field(s) ['robto']" in err and "Traceback" not in err
+
+
+def test_the_cell_s_twins_are_typed_attributes_only_while_it_runs(tmp_path):
+    host = CellHost(str(tmp_path))
+    for name in ("world", "robot", "rotary_table", "interferometer", "cameras", "bench"):
+        with pytest.raises(CellNotRunning, match="not running"):
+            getattr(host, name)
+    with pytest.raises(ValueError, match="no twin 'table'; expected one of cameras, robot"):
+        host.twin("table")
+
+
+def test_simcell_offers_the_control_methods_of_cellhost():
+    """Every command of the cell's table is a method of both, with the same signature."""
+    host = CellHost(".")
+    for command, method in host._commands.items():
+        name = method.__name__
+        assert hasattr(SimCell, name), f"SimCell lacks {name} (command {command!r})"
+        assert str(inspect.signature(getattr(SimCell, name))) == str(inspect.signature(getattr(CellHost, name)))
+
+
+def _read_status(table: dict):
+    with ModbusTcpClient(table["host"], port=table["port"], timeout=2.0, retries=0) as modbus:
+        assert modbus.connect()
+        return modbus.read_holding_registers(1, count=1, device_id=table["unit"])
+
+
+def test_faults_injected_through_the_control_channel_fire_in_the_running_cell(tmp_path):
+    with SimCell(seed=5, directory=tmp_path / "cell") as cell:
+        client = cell.client()
+        table = yaml.safe_load(cell.station_path.read_text())["devices"]["rotary_table"]
+        assert not _read_status(table).isError()
+
+        # The Modbus twin answers the next request with exception 4 (device failure), once.
+        assert client.call("inject_fault", device="rotary_table", kind="exception", code=4) == ["exception"]
+        refused = _read_status(table)
+        assert refused.isError() and refused.exception_code == 4
+        assert not _read_status(table).isError()
+        assert client.call("fired_faults", device="rotary_table") == [["exception", {"code": 4}]]
+
+        # Forwarding to a twin's own control API (``command`` inside the args used to be a TypeError).
+        stats = client.call("device", device="interferometer", command="stats")
+        assert client.call("device", device="interferometer", command="arm", kind="drop_reply", frames=7) == [
+            "drop_reply"]
+        deadline = time.monotonic() + 10.0
+        while client.call("device", device="interferometer", command="stats")["dropped"] < stats["dropped"] + 7:
+            assert time.monotonic() < deadline, "the armed drop_reply never fired"
+            time.sleep(0.05)
+        assert cell.fired_faults("interferometer") == [("drop_reply", {"frames": 7})]  # the same, over the pipe
+        assert cell.clear_faults("interferometer") == []
+
+        # Clear errors for an unknown command, bad arguments, a twin without faults.
+        with pytest.raises(ControlError, match="unknown command 'mount'; expected one of align_interferometer"):
+            client.call("mount", axis="x")
+        with pytest.raises(ControlError, match=r"bad arguments for mount_on_table\(axis\).*'axis'"):
+            client.call("mount_on_table")
+        with pytest.raises(ControlError, match="camera file twin takes no faults"):
+            client.call("inject_fault", device="cameras", kind="stall")
+        with pytest.raises(ControlError, match="unknown fault kind 'jam'"):
+            client.call("inject_fault", device="robot", kind="jam")
+        assert cell.mount_on_table("y") == "table:y"
+        assert cell.mount_on_robot() == "robot"
+        assert cell.ping() == "pong"  # the cell is still healthy after all that

@@ -4,11 +4,12 @@ See ``docs/interferometer.md``. ``InterferometerTwin(world, config)`` embeds in 
 ``StandaloneInterferometerHost`` runs on its own world in a ``TwinProcess``.
 """
 
-from sim_devices.interferometer._config import InterferometerTwinConfig
+from sim_devices.interferometer._config import FeedLayout, InterferometerTwinConfig
 from sim_devices.interferometer._head import HeadReading, InterferometerHead
 from sim_devices.interferometer._host import InterferometerTwin, StandaloneInterferometerHost, move_opr
 
 __all__ = [
+    "FeedLayout",
     "HeadReading",
     "InterferometerHead",
     "InterferometerTwin",

@@ -1,13 +1,65 @@
-"""Settings of the interferometer twin (the ``interferometer`` section of a cell config)."""
+"""Settings of the interferometer twin (the ``interferometer`` section of a cell config).
+
+``FeedLayout`` is the head's reading of the documented frame layout settings
+(``docs/interferometer.md``: ids, resolution, rates, under the same keys as a station file's
+``layout``); the byte encoding itself is in ``_frames.py``. Neither comes from the driver.
+"""
 
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
-from drivers._config import checked_fields
-from drivers.interferometer._layout import FrameLayout
+from sim_devices._config import checked_fields
+
+_ID_KEYS = ("displacement_id", "status_id", "command_id", "reply_id")
+
+
+@dataclass(frozen=True)
+class FeedLayout:
+    """CAN ids (standard 11-bit), resolution (m per count) and rates (Hz) of the feed the head sends."""
+
+    displacement_id: int = 0x181
+    status_id: int = 0x281
+    command_id: int = 0x601
+    reply_id: int = 0x581
+    resolution: float = 1e-10
+    sample_rate: float = 1000.0
+    status_rate: float = 10.0
+
+    def __post_init__(self) -> None:
+        ids = [getattr(self, key) for key in _ID_KEYS]
+        for key, can_id in zip(_ID_KEYS, ids):
+            if not (isinstance(can_id, int) and 0 <= can_id <= 0x7FF):
+                raise ValueError(f"interferometer twin layout: {key} {can_id!r} is not a standard 11-bit CAN id")
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"interferometer twin layout: the four CAN ids must differ, got {[hex(i) for i in ids]}")
+        if not self.resolution > 0:
+            raise ValueError(f"interferometer twin layout: resolution must be > 0 m, got {self.resolution!r}")
+        if not 0 < self.sample_rate <= 10_000:
+            raise ValueError(f"interferometer twin layout: sample_rate must be in (0, 10000] Hz, "
+                             f"got {self.sample_rate!r}")
+        if not 0 < self.status_rate <= self.sample_rate:
+            raise ValueError(f"interferometer twin layout: status_rate must be in (0, sample_rate], "
+                             f"got {self.status_rate!r}")
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any] | FeedLayout | None) -> FeedLayout:
+        """From a ``layout`` mapping; ids may be ints or strings such as ``"0x181"``."""
+        if isinstance(data, FeedLayout):
+            return data
+        settings = checked_fields(cls, data, "interferometer twin layout")
+        for key in _ID_KEYS:
+            if isinstance(settings.get(key), str):
+                try:
+                    settings[key] = int(settings[key], 0)
+                except ValueError:
+                    raise ValueError(f"interferometer twin layout: {key} {settings[key]!r} is not a number") from None
+        return cls(**settings)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
 
 
 @dataclass
@@ -18,7 +70,7 @@ class InterferometerTwinConfig:
     seeded random streams, so a seed reproduces them; ``scale_error`` pins the scale error instead.
     """
 
-    layout: FrameLayout = field(default_factory=FrameLayout)
+    layout: FeedLayout = field(default_factory=FeedLayout)
     axis: str = "x"  # axis of M the head is aimed along at start
     # physics
     noise_std: float = 2e-9  # white displacement noise per sample
@@ -40,7 +92,7 @@ class InterferometerTwinConfig:
 
     def __post_init__(self) -> None:
         if isinstance(self.layout, Mapping):
-            self.layout = FrameLayout.from_dict(self.layout)
+            self.layout = FeedLayout.from_dict(self.layout)
         if self.axis not in ("x", "y", "z"):
             raise ValueError(f"interferometer twin: axis must be 'x', 'y' or 'z', got {self.axis!r}")
         if not self.host.startswith("127."):
@@ -55,6 +107,6 @@ class InterferometerTwinConfig:
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any] | InterferometerTwinConfig | None) -> InterferometerTwinConfig:
-        if isinstance(data, cls):
+        if isinstance(data, InterferometerTwinConfig):
             return data
         return cls(**checked_fields(cls, data, "interferometer twin config"))

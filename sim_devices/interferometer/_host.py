@@ -3,11 +3,12 @@
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
 
+from sim_devices.control import dispatch
 from sim_devices.faults import FaultKind, FaultPlan
 from sim_devices.interferometer._config import InterferometerTwinConfig
 from sim_devices.interferometer._device import InterferometerDevice
@@ -90,14 +91,36 @@ class InterferometerTwin:
     # ------------------------------------------------------------------------------ control API
     def align(self, axis: str) -> dict[str, Any]:
         """The operator re-aims the head along M's ``axis`` (the count is lost: zero() again)."""
-        self._require_running()
-        truth = self.head.align(axis)
+        head, _ = self._running()
+        truth = head.align(axis)
         self.world.truth.record("interferometer_align", time=self.world.clock(), **truth)
         return truth
 
     def truth(self) -> dict[str, Any]:
-        self._require_running()
-        return self.head.truth()
+        head, _ = self._running()
+        return head.truth()
+
+    def arm(self, kind: FaultKind | str, count: int = 1, **params: Any) -> list[str]:
+        """Arm a feed fault (see ``_device.py`` for the kinds and their params); returns what is armed."""
+        self.faults.arm(FaultKind(kind), int(count), **params)
+        return [a.kind.value for a in self.faults.armed()]
+
+    def clear(self, kinds: tuple[FaultKind | str, ...] | list[FaultKind | str] = ()) -> list[str]:
+        """Disarm ``kinds`` (all when empty); returns what is still armed."""
+        self.faults.clear(*kinds)
+        return [a.kind.value for a in self.faults.armed()]
+
+    def fired(self) -> list[list[Any]]:
+        """Every fault fired so far, oldest first, as ``[kind, params]``."""
+        return [[kind.value, params] for kind, params in self.faults.fired()]
+
+    def stats(self) -> dict[str, int]:
+        """Frame counters of the head's clock and its transports."""
+        _, device = self._running()
+        stats = device.snapshot()
+        stats["slcan_overflows"] = self._slcan.overflows if self._slcan else 0
+        stats["socketcand_connections"] = self._socketcand.connections if self._socketcand else 0
+        return stats
 
     def station_entry(self, transport: str = "socketcand") -> dict[str, Any]:
         """The ``devices.interferometer`` entry of a station file for this twin."""
@@ -107,36 +130,19 @@ class InterferometerTwin:
             return {"adapter": "slcan", "port": self.endpoints["slcan"]["port"]}
         raise ValueError(f"interferometer twin: transport {transport!r} is not running")
 
-    def control(self, command: str, **kwargs: Any) -> Any:
-        if command == "align":
-            return self.align(kwargs["axis"])
-        if command == "arm":
-            kind = FaultKind(kwargs.pop("kind"))
-            self.faults.arm(kind, int(kwargs.pop("count", 1)), **kwargs)
-            return [a.kind.value for a in self.faults.armed()]
-        if command == "clear":
-            self.faults.clear(*kwargs.get("kinds", ()))
-            return [a.kind.value for a in self.faults.armed()]
-        if command == "fired":
-            return [[kind.value, params] for kind, params in self.faults.fired()]
-        if command == "truth":
-            return self.truth()
-        if command == "stats":
-            self._require_running()
-            stats = self.device.snapshot()
-            stats["slcan_overflows"] = self._slcan.overflows if self._slcan else 0
-            stats["socketcand_connections"] = self._socketcand.connections if self._socketcand else 0
-            return stats
-        if command == "endpoints":
-            return self.endpoints
-        if command == "station_entry":
-            return self.station_entry(kwargs.get("transport", "socketcand"))
-        raise ValueError(f"interferometer twin: unknown control command {command!r}; expected align, arm, clear, "
-                         "fired, truth, stats, endpoints, station_entry")
+    def control(self, command: str, /, **kwargs: Any) -> Any:
+        """The host API for ``TwinProcess``: each command is the method of that name (``endpoints``:
+        the attribute)."""
+        commands: dict[str, Callable[..., Any]] = {
+            "align": self.align, "arm": self.arm, "clear": self.clear, "fired": self.fired, "truth": self.truth,
+            "stats": self.stats, "endpoints": lambda: self.endpoints, "station_entry": self.station_entry,
+        }
+        return dispatch(commands, command, kwargs, "interferometer twin")
 
-    def _require_running(self) -> None:
+    def _running(self) -> tuple[InterferometerHead, InterferometerDevice]:
         if self.head is None or self.device is None:
             raise RuntimeError("interferometer twin is not running (call start())")
+        return self.head, self.device
 
 
 class StandaloneInterferometerHost:
@@ -159,15 +165,25 @@ class StandaloneInterferometerHost:
         self.twin.stop()
         self.world.truth.close()
 
-    def control(self, command: str, **kwargs: Any) -> Any:
-        if command == "set_flange_pose":
-            self.world.set_flange_pose(np.asarray(kwargs["pose"], dtype=float))
-            return self.world.opr_in_m().tolist()
-        if command == "move_opr":
-            move_opr(self.world, kwargs["delta"])
-            return self.world.opr_in_m().tolist()
-        if command == "opr_in_m":
-            return self.world.opr_in_m().tolist()
+    def set_flange_pose(self, pose: list[float] | list[list[float]]) -> list[list[float]]:
+        """Put the flange at ``pose`` (a UR pose of 6 values, or 4×4, in B); returns the OPR in M."""
+        self.world.set_flange_pose(np.asarray(pose, dtype=float))
+        return self.opr_in_m()
+
+    def move_opr(self, delta: list[float]) -> list[list[float]]:
+        """Translate the OPR by ``delta`` (metres, in M); returns the OPR in M."""
+        move_opr(self.world, delta)
+        return self.opr_in_m()
+
+    def opr_in_m(self) -> list[list[float]]:
+        return self.world.opr_in_m().tolist()
+
+    def control(self, command: str, /, **kwargs: Any) -> Any:
+        """The world commands above, then every command of ``InterferometerTwin.control``."""
+        commands: dict[str, Callable[..., Any]] = {"set_flange_pose": self.set_flange_pose,
+                                                   "move_opr": self.move_opr, "opr_in_m": self.opr_in_m}
+        if command in commands:
+            return dispatch(commands, command, kwargs, "interferometer host")
         return self.twin.control(command, **kwargs)
 
 

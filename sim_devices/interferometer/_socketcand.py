@@ -64,7 +64,7 @@ class SocketcandServer:
         listener.listen(8)
         self._listener = listener
         self.port = listener.getsockname()[1]
-        self._thread = threading.Thread(target=self._serve, name="socketcand twin", daemon=True)
+        self._thread = threading.Thread(target=self._serve, args=(listener,), name="socketcand twin", daemon=True)
         self._thread.start()
         return {"host": self.host, "port": self.port, "channel": self.channel}
 
@@ -110,26 +110,26 @@ class SocketcandServer:
                 self._drop(client)
 
     # ------------------------------------------------------------------------------ server thread
-    def _serve(self) -> None:
+    def _serve(self, listener: socket.socket) -> None:
         while not self._stop.is_set():
             with self._clients_lock:
                 clients = list(self._clients)
-            sockets = [self._listener] + [c.sock for c in clients]
+            sockets = [listener] + [c.sock for c in clients]
             try:
                 readable, _, _ = select.select(sockets, [], [], 0.05)
             except (OSError, ValueError):
                 continue  # a client was closed under us by disconnect(); rebuild the list
             for sock in readable:
-                if sock is self._listener:
-                    self._accept()
+                if sock is listener:
+                    self._accept(listener)
                     continue
                 client = next((c for c in clients if c.sock is sock), None)
                 if client is not None:
                     self._read(client)
 
-    def _accept(self) -> None:
+    def _accept(self, listener: socket.socket) -> None:
         try:
-            sock, _ = self._listener.accept()
+            sock, _ = listener.accept()
         except OSError:
             return
         if time.monotonic() < self._refuse_until:

@@ -5,19 +5,25 @@ See ``docs/rotary_table.md``. The host object ``RotaryTableTwin`` is what the ce
 """
 
 from sim_devices.rotary_table._gcs import GcsController, GcsTableTwin
-from sim_devices.rotary_table._host import TRANSPORTS, RotaryTableTwin, make_host
+from sim_devices.rotary_table._host import TRANSPORTS, RotaryTableTwin, RotaryTableTwinConfig, make_host
 from sim_devices.rotary_table._modbus import ModbusDrive, ModbusTableTwin
 from sim_devices.rotary_table._physics import ARCSEC, CommandRefused, TableConfig, TablePhysics
+from sim_devices.rotary_table._register_map import DriveAlarmBits, DriveOpcodes, DriveRegisterMap, DriveStatusBits
 from sim_devices.rotary_table._tcp_proxy import TcpFaultProxy
 
 __all__ = [
     "ARCSEC",
     "CommandRefused",
+    "DriveAlarmBits",
+    "DriveOpcodes",
+    "DriveRegisterMap",
+    "DriveStatusBits",
     "GcsController",
     "GcsTableTwin",
     "ModbusDrive",
     "ModbusTableTwin",
     "RotaryTableTwin",
+    "RotaryTableTwinConfig",
     "TRANSPORTS",
     "TableConfig",
     "TablePhysics",

@@ -15,17 +15,57 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable, Mapping
-from typing import Any
+from dataclasses import dataclass, field
+from typing import Any, Literal, cast
 
-from drivers.rotary_table._registers import RegisterMap
-from sim_devices.faults import FaultPlan
+from sim_devices._config import checked_fields
+from sim_devices.control import dispatch
+from sim_devices.faults import FaultKind, FaultPlan
 from sim_devices.rotary_table._gcs import GcsTableTwin
 from sim_devices.rotary_table._modbus import ModbusTableTwin
 from sim_devices.rotary_table._physics import TableConfig, TablePhysics
-from sim_devices.world import World, WorldConfig
+from sim_devices.rotary_table._register_map import DriveRegisterMap
+from sim_devices.world import Axis, World, WorldConfig
 
-TRANSPORTS = ("modbus_tcp", "modbus_rtu", "gcs")
-_CONFIG_KEYS = {"transports", "table", "register_map", "unit", "tcp_port", "seed", "tick", "world_rate"}
+Transport = Literal["modbus_tcp", "modbus_rtu", "gcs"]
+TRANSPORTS: tuple[Transport, ...] = ("modbus_tcp", "modbus_rtu", "gcs")
+
+
+@dataclass(frozen=True)
+class RotaryTableTwinConfig:
+    """The ``rotary_table`` section of a cell configuration (see ``RotaryTableTwin``)."""
+
+    transports: tuple[Transport, ...] = TRANSPORTS
+    table: Mapping[str, Any] = field(default_factory=dict)
+    register_map: DriveRegisterMap = field(default_factory=DriveRegisterMap)
+    unit: int = 1
+    tcp_port: int = 0
+    seed: int | None = None
+    tick: float = 0.01
+    world_rate: float = 50.0
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any] | None) -> RotaryTableTwinConfig:
+        settings = checked_fields(cls, data, "rotary table twin")
+        if "transports" in settings:
+            transports = tuple(settings["transports"])
+            bad = set(transports) - set(TRANSPORTS)
+            if bad:
+                raise ValueError(f"rotary table twin: unknown transport(s) {sorted(bad)}; known: {list(TRANSPORTS)}")
+            settings["transports"] = cast(tuple[Transport, ...], transports)
+        settings["register_map"] = DriveRegisterMap.from_config(settings.get("register_map"))
+        settings["table"] = dict(settings.get("table") or {})
+        for key, kind in (("unit", int), ("tcp_port", int), ("tick", float), ("world_rate", float)):
+            if key in settings:
+                settings[key] = kind(settings[key])
+        if settings.get("seed") is not None:
+            settings["seed"] = int(settings["seed"])
+        config = cls(**settings)
+        if not 0 <= config.unit <= 247:
+            raise ValueError(f"rotary table twin: unit must be a Modbus device id 0..247, got {config.unit}")
+        if not (config.tick > 0 and config.world_rate > 0):
+            raise ValueError("rotary table twin: tick and world_rate must be > 0")
+        return config
 
 
 class RotaryTableTwin:
@@ -46,26 +86,17 @@ class RotaryTableTwin:
         Monotonic seconds for the physics (inject a fake clock in tests).
     """
 
-    def __init__(self, world: World, config: Mapping[str, Any] | None = None,
+    def __init__(self, world: World, config: Mapping[str, Any] | RotaryTableTwinConfig | None = None,
                  clock: Callable[[], float] = time.monotonic) -> None:
-        config = dict(config or {})
-        unknown = set(config) - _CONFIG_KEYS
-        if unknown:
-            raise ValueError(
-                f"rotary table twin: unknown config key(s) {sorted(unknown)}; known: {sorted(_CONFIG_KEYS)}"
-            )
+        settings = config if isinstance(config, RotaryTableTwinConfig) else RotaryTableTwinConfig.from_dict(config)
+        self.config = settings
         self.world = world
-        self.transports = tuple(config.get("transports", TRANSPORTS))
-        bad = set(self.transports) - set(TRANSPORTS)
-        if bad:
-            raise ValueError(f"rotary table twin: unknown transport(s) {sorted(bad)}; known: {list(TRANSPORTS)}")
-        seed = int(config.get("seed", world.config.seed))
-        table = dict(config.get("table") or {})
-        table.setdefault("seed", seed)
-        self.table_config = TableConfig.from_dict(table)
-        self.register_map = RegisterMap.from_config(config.get("register_map"))
-        self.tick = float(config.get("tick", 0.01))
-        self._min_interval = 1.0 / float(config.get("world_rate", 50.0))
+        self.transports = settings.transports
+        seed = world.config.seed if settings.seed is None else settings.seed
+        self.table_config = TableConfig.from_dict({"seed": seed, **settings.table})
+        self.register_map = settings.register_map
+        self.tick = settings.tick
+        self._min_interval = 1.0 / settings.world_rate
         self._last_unsettled = -1e9
         self._published: tuple[float, bool] | None = None
         self.physics = TablePhysics(self.table_config, clock=clock, on_change=self._to_world,
@@ -73,9 +104,9 @@ class RotaryTableTwin:
         self.modbus: ModbusTableTwin | None = None
         self.gcs: GcsTableTwin | None = None
         if {"modbus_tcp", "modbus_rtu"} & set(self.transports):
-            self.modbus = ModbusTableTwin(self.physics, self.register_map, unit=int(config.get("unit", 1)),
+            self.modbus = ModbusTableTwin(self.physics, self.register_map, unit=settings.unit,
                                           tcp="modbus_tcp" in self.transports, rtu="modbus_rtu" in self.transports,
-                                          tcp_port=int(config.get("tcp_port", 0)), seed=seed)
+                                          tcp_port=settings.tcp_port, seed=seed)
         if "gcs" in self.transports:
             self.gcs = GcsTableTwin(self.physics, seed=seed)
         self._stop = threading.Event()
@@ -139,6 +170,7 @@ class RotaryTableTwin:
                 face.stop()
 
     def truth(self) -> dict[str, Any]:
+        """True angle, settled flag, reported counts, error bound and the drive status now."""
         status = self.physics.status()
         return {
             "true_angle": self.physics.true_angle(),
@@ -149,32 +181,40 @@ class RotaryTableTwin:
             **dict(status.items()),
         }
 
-    def control(self, command: str, **kwargs: Any) -> Any:
-        """``arm`` (transport, kind, count=1, **params), ``clear`` (transport, kinds), ``fired``
-        (transport), ``truth``, ``alarm`` (name), ``alarm_reset``, ``endpoints``, ``describe``."""
-        if command == "arm":
-            transport, kind = kwargs.pop("transport"), kwargs.pop("kind")
-            self.faults(transport).arm(kind, int(kwargs.pop("count", 1)), **kwargs)
-            return None
-        if command == "clear":
-            self.faults(kwargs["transport"]).clear(*kwargs.get("kinds", ()))
-            return None
-        if command == "fired":
-            return [(kind.value, params) for kind, params in self.faults(kwargs["transport"]).fired()]
-        if command == "truth":
-            return self.truth()
-        if command == "alarm":
-            self.physics.raise_alarm(kwargs.get("name", "following_error"))
-            return None
-        if command == "alarm_reset":
-            self.physics.alarm_reset()
-            return None
-        if command == "endpoints":
-            return dict(self.endpoints)
-        if command == "describe":
-            return {"table": self.table_config.to_dict(), "register_map": self.register_map.to_config(),
-                    "transports": list(self.transports)}
-        raise ValueError(f"rotary table twin: unknown control command {command!r}")
+    # ----------------------------------------------------------------------------- typed control
+    def arm(self, transport: str, kind: FaultKind | str, count: int = 1, **params: Any) -> None:
+        """Arm a fault on one endpoint (``modbus_tcp``, ``modbus_rtu`` or ``gcs``)."""
+        self.faults(transport).arm(kind, int(count), **params)
+
+    def clear(self, transport: str, kinds: tuple[FaultKind | str, ...] | list[FaultKind | str] = ()) -> None:
+        """Disarm ``kinds`` (all when empty) on one endpoint."""
+        self.faults(transport).clear(*kinds)
+
+    def fired(self, transport: str) -> list[tuple[str, dict[str, Any]]]:
+        """Every fault fired on one endpoint so far, oldest first."""
+        return [(kind.value, params) for kind, params in self.faults(transport).fired()]
+
+    def raise_alarm(self, name: str = "following_error") -> None:
+        """A drive alarm: the table stops and refuses moves until ``alarm_reset``."""
+        self.physics.raise_alarm(name)
+
+    def alarm_reset(self) -> None:
+        self.physics.alarm_reset()
+
+    def describe(self) -> dict[str, Any]:
+        return {"table": self.table_config.to_dict(), "register_map": self.register_map.to_config(),
+                "transports": list(self.transports)}
+
+    def control(self, command: str, /, **kwargs: Any) -> Any:
+        """The host API for ``TwinProcess``: ``arm`` (transport, kind, count=1, **params), ``clear``
+        (transport, kinds), ``fired`` (transport), ``truth``, ``alarm`` (name), ``alarm_reset``,
+        ``endpoints``, ``describe``; each is the method of that name (``alarm``: ``raise_alarm``)."""
+        commands: dict[str, Callable[..., Any]] = {
+            "arm": self.arm, "clear": self.clear, "fired": self.fired, "truth": self.truth,
+            "alarm": self.raise_alarm, "alarm_reset": self.alarm_reset, "endpoints": lambda: dict(self.endpoints),
+            "describe": self.describe,
+        }
+        return dispatch(commands, command, kwargs, "rotary table twin")
 
 
 def make_host(config: Mapping[str, Any] | None = None, world: Mapping[str, Any] | None = None,
@@ -185,5 +225,5 @@ def make_host(config: Mapping[str, Any] | None = None, world: Mapping[str, Any] 
     """
     own_world = World(WorldConfig.from_dict(world))
     if mount:
-        own_world.mount_on_table(mount)  # type: ignore[arg-type]
+        own_world.mount_on_table(cast(Axis, mount))
     return RotaryTableTwin(own_world, config)

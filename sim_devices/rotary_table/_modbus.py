@@ -13,17 +13,20 @@ from __future__ import annotations
 
 import asyncio
 import threading
-from typing import Any
+from collections.abc import Coroutine, Mapping
+from typing import Any, TypeVar, cast
 
 from pymodbus.constants import ExcCodes
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
 
-from drivers.rotary_table._registers import RegisterMap
 from sim_devices._pty import PtyRelay, modbus_rtu_reply_framer, modbus_tcp_reply_framer
 from sim_devices.faults import FaultKind, FaultPlan
 from sim_devices.rotary_table._physics import CommandRefused, TablePhysics
+from sim_devices.rotary_table._register_map import DriveRegisterMap
 from sim_devices.rotary_table._tcp_proxy import TcpFaultProxy
+
+_T = TypeVar("_T")
 
 
 def _corrupt_mbap(reply: bytes) -> bytes:
@@ -34,7 +37,7 @@ def _corrupt_mbap(reply: bytes) -> bytes:
 class ModbusDrive:
     """Register image of the drive, kept in step with the physics by the SimDevice action."""
 
-    def __init__(self, physics: TablePhysics, register_map: RegisterMap, faults: FaultPlan, unit: int = 1) -> None:
+    def __init__(self, physics: TablePhysics, register_map: DriveRegisterMap, faults: FaultPlan, unit: int = 1) -> None:
         self.physics = physics
         self.map = register_map
         self.faults = faults
@@ -43,22 +46,11 @@ class ModbusDrive:
         self.requests = 0
 
     def device(self) -> SimDevice:
-        m = self.map
-        layout = [  # (address, width, read only)
-            (m.alarm, 1, True),
-            (m.status, 1, True),
-            (m.encoder_position, 2, True),
-            (m.position_command, 2, False),
-            (m.velocity, 1, False),
-            (m.acceleration, 1, False),
-            (m.actual_velocity, 1, True),
-            (m.control, 1, False),
-        ]
-        spans = sorted((a, a + w) for a, w, _ in layout)
-        if any(b[0] < a[1] for a, b in zip(spans, spans[1:])):
-            raise ValueError(f"register map: overlapping registers {spans}")
-        simdata = [SimData(address=a, count=w, values=0, datatype=DataType.REGISTERS, readonly=ro)
-                   for a, w, ro in layout]
+        read_only = {"alarm", "status", "encoder_position", "actual_velocity"}
+        # DriveRegisterMap refuses overlapping spans, so the layout is always well formed.
+        simdata = [SimData(address=start, count=width, values=0, datatype=DataType.REGISTERS,
+                           readonly=name in read_only)
+                   for name, (start, width) in self.map.spans().items()]
         return SimDevice(id=self.unit, simdata=simdata, action=self.action)
 
     # ----------------------------------------------------------------------------- the action
@@ -85,11 +77,11 @@ class ModbusDrive:
 
         try:
             if m.velocity in written:
-                self.physics.set_speed(m.velocity_to_rad_s(current(m.velocity)))
+                self.physics.set_speed(m.speed_of_word(current(m.velocity)))
             if m.acceleration in written:
-                self.physics.set_acceleration(m.accel_to_rad_s2(current(m.acceleration)))
+                self.physics.set_acceleration(m.acceleration_of_word(current(m.acceleration)))
             if m.control in written:
-                target = m.join32([current(m.position_command), current(m.position_command + 1)])
+                target = m.s32_of_words(current(m.position_command), current(m.position_command + 1))
                 self._execute(written[m.control], target)
         except CommandRefused:
             return ExcCodes.DEVICE_FAILURE
@@ -132,12 +124,12 @@ class ModbusDrive:
             word |= (1 << bits.alarm) | (1 << bits.drive_fault)
         registers[m.alarm - start] = alarm_word
         registers[m.status - start] = word
-        high_low = m.split32(counts)
-        registers[m.encoder_position - start] = high_low[0]
-        registers[m.encoder_position + 1 - start] = high_low[1]
-        registers[m.actual_velocity - start] = m.rad_s_to_velocity(status["velocity"]) & 0xFFFF
-        registers[m.velocity - start] = m.rad_s_to_velocity(self.physics.speed) & 0xFFFF
-        registers[m.acceleration - start] = m.rad_s2_to_accel(self.physics.acceleration) & 0xFFFF
+        first, second = m.words_of_s32(counts)
+        registers[m.encoder_position - start] = first
+        registers[m.encoder_position + 1 - start] = second
+        registers[m.actual_velocity - start] = m.actual_velocity_word(status["velocity"])
+        registers[m.velocity - start] = m.speed_word(self.physics.speed)
+        registers[m.acceleration - start] = m.acceleration_word(self.physics.acceleration)
 
 
 class _LoopThread:
@@ -148,7 +140,7 @@ class _LoopThread:
         self._thread = threading.Thread(target=self.loop.run_forever, name=name, daemon=True)
         self._thread.start()
 
-    def run(self, coro, timeout: float = 10.0) -> Any:
+    def run(self, coro: Coroutine[Any, Any, _T], timeout: float = 10.0) -> _T:
         return asyncio.run_coroutine_threadsafe(coro, self.loop).result(timeout)
 
     def close(self) -> None:
@@ -175,9 +167,9 @@ class ModbusTableTwin:
     one transport is never taken by the other. ``start()`` returns the endpoints.
     """
 
-    def __init__(self, physics: TablePhysics, register_map: RegisterMap | None = None, *, unit: int = 1,
-                 tcp: bool = True, rtu: bool = True, tcp_port: int = 0, seed: int = 0) -> None:
-        self.map = register_map or RegisterMap()
+    def __init__(self, physics: TablePhysics, register_map: DriveRegisterMap | Mapping[str, Any] | None = None, *,
+                 unit: int = 1, tcp: bool = True, rtu: bool = True, tcp_port: int = 0, seed: int = 0) -> None:
+        self.map = DriveRegisterMap.from_config(register_map)
         self.faults = FaultPlan()  # TCP
         self.rtu_faults = FaultPlan()
         self.tcp_drive = ModbusDrive(physics, self.map, self.faults, unit)
@@ -194,8 +186,7 @@ class ModbusTableTwin:
         self._loop = _LoopThread("modbus table twin")
         try:
             if self._want_tcp:
-                server = self._loop.run(self._start_tcp())
-                direct_port = server.transport.sockets[0].getsockname()[1]
+                direct_port = self._loop.run(self._start_tcp())
                 self._proxy = TcpFaultProxy(("127.0.0.1", direct_port), self.faults, framer=modbus_tcp_reply_framer,
                                             corrupt=_corrupt_mbap, port=self._tcp_port,
                                             name="modbus tcp fault proxy").start()
@@ -210,11 +201,14 @@ class ModbusTableTwin:
             raise
         return dict(self.endpoints)
 
-    async def _start_tcp(self) -> ModbusTcpServer:
+    async def _start_tcp(self) -> int:
+        """Start the TCP server on an OS-chosen port; returns that port."""
         server = ModbusTcpServer(self.tcp_drive.device(), address=("127.0.0.1", 0))
         await server.serve_forever(background=True)
         self._servers.append(server)
-        return server
+        # pymodbus types ``transport`` as a BaseTransport; for a listening server it is the asyncio.Server.
+        listener = cast(asyncio.Server, server.transport)
+        return int(listener.sockets[0].getsockname()[1])
 
     async def _start_rtu(self, path: str) -> ModbusSerialServer:
         server = ModbusSerialServer(self.rtu_drive.device(), port=path, baudrate=115200, timeout=1.0)

@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers._config import checked_fields
+from sim_devices._config import checked_fields
 
 ARCSEC = math.pi / (180.0 * 3600.0)
 

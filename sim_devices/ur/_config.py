@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from drivers._config import checked_fields
+from sim_devices._config import checked_fields
 
 
 @dataclass

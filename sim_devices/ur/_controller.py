@@ -82,7 +82,7 @@ class URController:
         self.tcp_pose = kin.forward(self.q, self.tcp_offset)
         self.tcp_speed = np.zeros(6)
         self.motion: Motion | None = None
-        self._motion_callbacks: list[Callable[[Motion], None]] = []
+        self._motion_callbacks: list[Callable[[Motion | None], None]] = []
         self._steady_since = 0.0
         self._last_publish = 0.0
         self._last_tick_t = 0.0
@@ -127,7 +127,7 @@ class URController:
             del self.events[:-500]
 
     # ----------------------------------------------------------------------------- registers
-    def set_inputs(self, values: dict[str, object]) -> None:
+    def set_inputs(self, values: dict[str, Any]) -> None:
         """Apply an RTDE input data package (only register fields matter to the twin)."""
         with self.changed:
             for name, value in values.items():
@@ -148,14 +148,14 @@ class URController:
             return self.motion is None and self.sim_time() - self._steady_since >= 0.05
 
     def start_motion(self, motion_factory: Callable[[float, np.ndarray, np.ndarray], Motion],
-                     on_done: Callable[[Motion], None] | None = None) -> Motion:
+                     on_done: Callable[[Motion | None], None] | None = None) -> Motion:
         """Replace any running motion by a new one starting at the current commanded state."""
         with self.changed:
             if self.safety_bits & (SAFETY_BIT_PROTECTIVE | SAFETY_BIT_ESTOP):
                 raise RuntimeError("motion refused: the robot is stopped by its safety system")
             t = self.sim_time()
             if self.motion is not None:
-                self._sample(t)
+                self._sample(self.motion, t)
             self.motion = motion_factory(t, self.q.copy(), self.tcp_offset.copy())
             self._motion_callbacks = [on_done] if on_done else []
             self.changed.notify_all()
@@ -165,7 +165,8 @@ class URController:
         with self.lock:
             self._motion_callbacks = []
 
-    def stop_motion(self, deceleration: float, on_done: Callable[[Motion], None] | None = None) -> Motion | None:
+    def stop_motion(self, deceleration: float,
+                    on_done: Callable[[Motion | None], None] | None = None) -> Motion | None:
         """Decelerate the running motion to rest; ``on_done`` runs when it is at rest (at once if idle)."""
         with self.changed:
             motion = self.motion
@@ -261,7 +262,7 @@ class URController:
             t = self.sim_time()
             motion = self.motion
             if motion is not None:
-                self._sample(t)
+                self._sample(motion, t)
                 self._mid_move_faults(motion, t)
                 if self.motion is motion and t >= motion.t_end:
                     self._finish_motion(motion, t)
@@ -276,8 +277,9 @@ class URController:
                 self.tcp_speed = np.zeros(6)
             self._update_snapshot(t)
 
-    def _sample(self, t: float) -> None:
-        q, pose = self.motion.sample(t)
+    def _sample(self, motion: Motion, t: float) -> None:
+        """Advance the commanded state along ``motion`` (the running one) to simulated time ``t``."""
+        q, pose = motion.sample(t)
         dt = t - self._last_tick_t
         if dt > 0:
             self.qd = (q - self.q) / dt
@@ -297,7 +299,7 @@ class URController:
         # simulated instant the path crossed ``at``.
         self.trigger(armed.kind, at_time=motion.time_at_fraction(at))
         if self.motion is motion:
-            self._sample(t)
+            self._sample(motion, t)
 
     def trigger(self, kind: FaultKind | str, at_time: float | None = None) -> None:
         """Make a fault happen now (or, for a safety stop, at simulated time ``at_time``)."""

@@ -8,6 +8,7 @@ VECTOR6INT32, VECTOR6UINT32. Big-endian on the wire. A name the controller does 
 from __future__ import annotations
 
 import struct
+from typing import Any
 
 #: struct format (without byte order) and element count per RTDE type.
 TYPE_FORMATS: dict[str, tuple[str, int]] = {
@@ -107,12 +108,14 @@ class Recipe:
                 flat.append(value)
             else:
                 flat.extend(value)
+        if self.struct is None:
+            raise ValueError(f"recipe {self.id} names unknown fields; it carries no data")
         return self.struct.pack(*flat)
 
-    def unpack(self, payload: bytes) -> dict[str, object]:
+    def unpack(self, payload: bytes) -> dict[str, Any]:
         """Decode a data payload (after the recipe id byte). A short packet yields the leading fields
         only, so a client that sends fewer values than the recipe holds does not break the twin."""
-        out: dict[str, object] = {}
+        out: dict[str, Any] = {}
         offset = 0
         for name, typ in zip(self.names, self.types):
             fmt, count = TYPE_FORMATS[typ]

@@ -13,6 +13,7 @@ import struct
 import threading
 import time
 from collections.abc import Callable
+from typing import Any
 
 from sim_devices.faults import FaultKind
 from sim_devices.ur._controller import (
@@ -49,13 +50,14 @@ class TcpServer:
         self.port = listener.getsockname()[1]
         self._listener = listener
         self.running.set()
-        self._thread = threading.Thread(target=self._accept_loop, name=f"ur-{self.name}-accept", daemon=True)
+        self._thread = threading.Thread(target=self._accept_loop, args=(listener,), name=f"ur-{self.name}-accept",
+                                        daemon=True)
         self._thread.start()
 
-    def _accept_loop(self) -> None:
+    def _accept_loop(self, listener: socket.socket) -> None:
         while self.running.is_set():
             try:
-                sock, _ = self._listener.accept()
+                sock, _ = listener.accept()
             except TimeoutError:
                 continue
             except OSError:
@@ -144,7 +146,7 @@ class RTDEHandler:
         started = False
         period = 1.0 / 125.0
         next_send = 0.0
-        getters: list[Callable[[], object]] = []
+        getters: list[Callable[[dict[str, Any]], object]] = []
         owner = object()
         try:
             while server.running.is_set():
@@ -186,12 +188,12 @@ class RTDEHandler:
                         started = False
                         self._send(sock, P, struct.pack(">B", 1))
                     elif kind == U and payload:
-                        recipe = inputs.get(payload[0])
-                        if recipe is not None:
-                            c.set_inputs(recipe.unpack(payload[1:]))
+                        input_recipe = inputs.get(payload[0])
+                        if input_recipe is not None:
+                            c.set_inputs(input_recipe.unpack(payload[1:]))
                     continue
                 now = time.monotonic()
-                if started and now >= next_send:
+                if started and output is not None and now >= next_send:
                     next_send = max(next_send + period, now + 0.25 * period)
                     if now < c.stream_stall_until:
                         continue
@@ -211,7 +213,7 @@ class RTDEHandler:
         if armed is not None:
             time.sleep(float(armed.params.get("seconds", 0.5)))
 
-    def _getter(self, name: str):
+    def _getter(self, name: str) -> Callable[[dict[str, Any]], object]:
         c = self.c
         if name == "timestamp":
             # The controller's clock runs on while the stream is served, even when the control

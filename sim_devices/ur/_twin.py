@@ -9,12 +9,13 @@ than the ur_rtde client (the client's constructors hold the GIL while they wait)
 from __future__ import annotations
 
 import ipaddress
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
 
-from sim_devices.faults import FaultKind, FaultPlan
+from sim_devices.control import dispatch
+from sim_devices.faults import FaultKind, FaultPlan, fault_kind
 from sim_devices.ur._config import URTwinConfig
 from sim_devices.ur._controller import URController
 from sim_devices.ur._servers import (
@@ -106,59 +107,76 @@ class URControllerTwin:
             server.drop_connections()
 
     # ----------------------------------------------------------------------------- control API
-    def control(self, command: str, **kwargs: Any) -> Any:
-        """The twin's control API (also reachable through ``TwinProcess.call``).
+    def state(self) -> dict[str, Any]:
+        """The controller's state now (modes, safety bits, joints, TCP pose ...)."""
+        return self.controller.describe()
 
-        Commands: ``endpoints``; ``state``; ``visits`` (``since``: index) — true attained poses;
-        ``truth`` — the world's settled-pose log; ``events``; ``arm_fault`` (``kind``, ``count``,
-        params; robot faults fire mid-move at fraction ``at``, default 0.5); ``trigger`` (``kind``:
-        protective_stop / emergency_stop / program_stopped / disconnect — now); ``clear_faults``
-        (disarm, and unlock safety stops); ``fired``; ``set_repeatability`` (``translation_std``,
-        ``rotation_std``, ``approach_bias``, ``drift_amplitude``); ``connections``; ``describe``.
+    def visits(self, since: int = 0) -> list[dict[str, Any]]:
+        """True attained poses of the finished moves, from index ``since`` on."""
+        with self.controller.lock:
+            return list(self.controller.visits[int(since):])
+
+    def truth(self) -> list[dict[str, Any]]:
+        """The world's pose log."""
+        return self.world.truth.entries("pose")
+
+    def events(self) -> list[str]:
+        with self.controller.lock:
+            return list(self.controller.events)
+
+    def arm_fault(self, kind: FaultKind | str, count: int = 1, **params: Any) -> list[str]:
+        """Arm a fault; robot faults fire mid-move at path fraction ``at`` (default 0.5). Returns what is armed."""
+        self.faults.arm(kind, int(count), **params)
+        return [a.kind.value for a in self.faults.armed()]
+
+    def trigger(self, kind: FaultKind | str) -> dict[str, Any]:
+        """Make ``protective_stop``, ``emergency_stop``, ``program_stopped`` or ``disconnect`` happen now."""
+        self.controller.trigger(fault_kind(kind))
+        return self.controller.describe()
+
+    def clear_faults(self) -> dict[str, Any]:
+        """Disarm every fault, end a stream stall and unlock safety stops."""
+        self.faults.clear()
+        self.controller.stream_stall_until = 0.0
+        self.controller.clear_safety()
+        return self.controller.describe()
+
+    def fired(self) -> list[tuple[str, dict[str, Any]]]:
+        return [(k.value, p) for k, p in self.faults.fired()]
+
+    def set_repeatability(self, translation_std: float | None = None, rotation_std: float | None = None,
+                          approach_bias: float | None = None, drift_amplitude: float | None = None,
+                          drift_time_constant: float | None = None) -> dict[str, Any]:
+        """Change the attained-pose error model from now on (SI units); returns the whole config."""
+        cfg = self.config
+        changes = {"repeatability_translation_std": translation_std, "repeatability_rotation_std": rotation_std,
+                   "approach_bias": approach_bias, "thermal_drift_amplitude": drift_amplitude,
+                   "thermal_drift_time_constant": drift_time_constant}
+        for field_name, value in changes.items():
+            if value is not None:
+                setattr(cfg, field_name, float(value))
+        return cfg.to_dict()
+
+    def connections(self) -> dict[str, int]:
+        return {name: server.connection_count for name, server in self.servers.items()}
+
+    def describe(self) -> dict[str, Any]:
+        return {"config": self.config.to_dict(), "world": self.world.describe(), "endpoints": self.endpoints()}
+
+    def control(self, command: str, /, **kwargs: Any) -> Any:
+        """The twin's control API (also reachable through ``TwinProcess.call``): each command is the
+        method of that name: ``endpoints``, ``state``, ``visits`` (since), ``truth``, ``events``,
+        ``arm_fault`` (kind, count, params), ``trigger`` (kind), ``clear_faults``, ``fired``,
+        ``set_repeatability`` (translation_std, rotation_std, approach_bias, drift_amplitude,
+        drift_time_constant), ``connections``, ``describe``.
         """
-        c = self.controller
-        if command == "endpoints":
-            return self.endpoints()
-        if command == "state":
-            return c.describe()
-        if command == "visits":
-            with c.lock:
-                return list(c.visits[int(kwargs.get("since", 0)):])
-        if command == "truth":
-            return self.world.truth.entries("pose")
-        if command == "events":
-            with c.lock:
-                return list(c.events)
-        if command == "arm_fault":
-            kind = kwargs.pop("kind")
-            count = int(kwargs.pop("count", 1))
-            self.faults.arm(kind, count, **kwargs)
-            return [a.kind.value for a in self.faults.armed()]
-        if command == "trigger":
-            c.trigger(FaultKind(kwargs["kind"]))
-            return c.describe()
-        if command == "clear_faults":
-            self.faults.clear()
-            c.stream_stall_until = 0.0
-            c.clear_safety()
-            return c.describe()
-        if command == "fired":
-            return [(k.value, p) for k, p in self.faults.fired()]
-        if command == "set_repeatability":
-            cfg = self.config
-            mapping = {"translation_std": "repeatability_translation_std", "rotation_std": "repeatability_rotation_std",
-                       "approach_bias": "approach_bias", "drift_amplitude": "thermal_drift_amplitude",
-                       "drift_time_constant": "thermal_drift_time_constant"}
-            for key, value in kwargs.items():
-                if key not in mapping:
-                    raise ValueError(f"set_repeatability: unknown field {key!r}; expected {sorted(mapping)}")
-                setattr(cfg, mapping[key], float(value))
-            return cfg.to_dict()
-        if command == "connections":
-            return {name: server.connection_count for name, server in self.servers.items()}
-        if command == "describe":
-            return {"config": self.config.to_dict(), "world": self.world.describe(), "endpoints": self.endpoints()}
-        raise ValueError(f"UR twin: unknown control command {command!r}")
+        commands: dict[str, Callable[..., Any]] = {
+            "endpoints": self.endpoints, "state": self.state, "visits": self.visits, "truth": self.truth,
+            "events": self.events, "arm_fault": self.arm_fault, "trigger": self.trigger,
+            "clear_faults": self.clear_faults, "fired": self.fired, "set_repeatability": self.set_repeatability,
+            "connections": self.connections, "describe": self.describe,
+        }
+        return dispatch(commands, command, kwargs, "UR twin")
 
 
 def standalone_host(host: str = "127.0.0.2", seed: int = 0, time_scale: float = 1.0,
