@@ -16,7 +16,7 @@ import psutil
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from drivers.robot import URRobot
+from drivers.robot import MotionEnvelope, URRobot, URRtdeSettings
 from sim_devices import TwinProcess
 from sim_devices.cell import free_loopback_host
 
@@ -37,9 +37,9 @@ def main() -> None:
     host = free_address()
     twin = TwinProcess("sim_devices.ur:standalone_host", {"host": host, "time_scale": TIME_SCALE})
     twin.start()
-    robot = URRobot("robot", host=host)
+    robot = URRobot(URRtdeSettings(host=host), name="robot", envelope=MotionEnvelope())
     try:
-        robot.connect()
+        robot.open()
         pid = twin._process.pid  # the child process this benchmark started
         proc = psutil.Process(pid)
         proc.cpu_percent(None)

@@ -1,5 +1,9 @@
-"""Device drivers: one subpackage per device kind, each an interface plus adapters on the real
-client libraries. This package never imports ``sim_devices``."""
+"""Device drivers: one subpackage per device kind, each an interface, typed settings and adapters
+on the real client libraries. This package never imports ``sim_devices``.
+
+Shared here: the typed device errors (every one names device, operation and cause) and
+``SettingsError``, raised by every kind's ``create()`` for settings that do not validate.
+"""
 
 from drivers._errors import (
     DeviceConnectionError,
@@ -9,6 +13,7 @@ from drivers._errors import (
     MotionRefused,
     ProtocolError,
 )
+from drivers._settings import SettingsError
 
 __all__ = [
     "DeviceConnectionError",
@@ -17,4 +22,5 @@ __all__ = [
     "DeviceTimeout",
     "MotionRefused",
     "ProtocolError",
+    "SettingsError",
 ]

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
-from typing import Any
+from types import UnionType
+from typing import Annotated, Any, Union, get_args, get_origin
 
 from pydantic import BaseModel, ValidationError
+from pydantic_core import ErrorDetails
 
 from instrument.pose import Geometry
 from procedures._errors import ConfigError
@@ -25,13 +28,22 @@ def _field_name(loc: tuple) -> str:
     return text or "(document)"
 
 
-def _expected(error: dict, model: type[BaseModel], loc: tuple) -> str:
-    """Turn one pydantic error into a sentence that says what was expected."""
+def _expected(error: ErrorDetails, types: list[Any]) -> str:
+    """Turn one pydantic error into a sentence that says what was expected. ``types`` are the
+    annotations along the error's path (see ``_walk``): ``types[-1]`` is the one at the error."""
     kind, msg = error["type"], error["msg"]
-    if kind == "extra_forbidden":
-        allowed = _allowed_fields(model, loc[:-1])
-        hint = f"; expected one of: {', '.join(allowed)}" if allowed else ""
+    if kind in ("extra_forbidden", "unexpected_keyword_argument"):
+        parent = types[-2] if len(types) > 1 else None
+        allowed = [name for name in _fields(parent) if not (name == "adapter" and _tagged(parent))]
+        hint = f"; expected one of {', '.join(allowed)}" if allowed else ""
         return f"unknown field{hint}"
+    tags = ", ".join(_tagged(types[-1]))
+    if kind == "union_tag_invalid":  # reported at the union's ``adapter`` key, see _refine
+        return f"expected one of {tags} (got {error.get('ctx', {}).get('tag')!r})"
+    if kind == "union_tag_not_found":
+        return f"required field is missing; expected one of {tags}"
+    if kind == "model_attributes_type" and tags:
+        return f"expected a mapping with 'adapter' (one of {tags}) and its settings (got {error['input']!r})"
     if kind == "missing":
         return "required field is missing"
     text = msg[0].lower() + msg[1:] if msg else kind
@@ -40,35 +52,79 @@ def _expected(error: dict, model: type[BaseModel], loc: tuple) -> str:
     return text.replace("value error, ", "")
 
 
-def _allowed_fields(model: type[BaseModel], loc: tuple) -> list[str]:
-    current: Any = model
+# ------------------------------------------------------------------ walking the models along a loc
+# A discriminated union (the device settings) puts the chosen member's tag into pydantic's loc:
+# ``devices.robot.ur_rtde.hots``. The file has no such key, so the tags are taken out of the path
+# (for the line and the message) and used to pick the member whose fields are listed.
+
+
+def _walk(model: type[BaseModel], loc: tuple) -> tuple[tuple, list[Any]]:
+    """``loc`` without union tags, and the annotation at each of its prefixes (``types[i]`` is the
+    one at ``clean[:i]``; None where the models say nothing)."""
+    clean: list[Any] = []
+    types: list[Any] = [model]
     for part in loc:
-        if isinstance(part, int) or not (isinstance(current, type) and issubclass(current, BaseModel)):
-            current = _inner_model(current)
-            if isinstance(part, int):
-                continue
-        if not (isinstance(current, type) and issubclass(current, BaseModel)) or part not in current.model_fields:
-            return []
-        current = current.model_fields[part].annotation
-    current = _inner_model(current)
-    if isinstance(current, type) and issubclass(current, BaseModel):
-        return list(current.model_fields)
-    return []
+        members = _tagged(types[-1])
+        if isinstance(part, str) and part in members:
+            types[-1] = members[part]
+            continue
+        clean.append(part)
+        types.append(_element(types[-1]) if isinstance(part, int) else _fields(types[-1]).get(part))
+    return tuple(clean), types
 
 
-def _inner_model(annotation: Any) -> Any:
-    """The BaseModel inside ``X | None`` or ``list[X]``, if any."""
-    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
-        return annotation
-    for arg in getattr(annotation, "__args__", ()) or ():
-        found = _inner_model(arg)
-        if found is not None:
-            return found
+def _fields(annotation: Any) -> dict[str, Any]:
+    """Field name → annotation of the model or dataclass inside ``annotation`` (``X | None`` too);
+    for a union of several models, none (the tag decides, see ``_tagged``)."""
+    candidates = [arg for arg in _members(annotation) if _is_class(arg)]
+    if len(candidates) != 1:
+        return {}
+    kind = candidates[0]
+    if issubclass(kind, BaseModel):
+        return {name: info.annotation for name, info in kind.model_fields.items()}
+    if dataclasses.is_dataclass(kind):
+        return {f.name: f.type for f in dataclasses.fields(kind)}
+    return {}
+
+
+def _tagged(annotation: Any) -> dict[str, type[BaseModel]]:
+    """The models of a union discriminated on ``adapter`` (a lone such model counts), by tag."""
+    found: dict[str, type[BaseModel]] = {}
+    for member in _members(annotation):
+        if _is_class(member) and issubclass(member, BaseModel) and "adapter" in member.model_fields:
+            for tag in get_args(member.model_fields["adapter"].annotation):
+                found[tag] = member
+    return found
+
+
+def _members(annotation: Any) -> list[Any]:
+    """The alternatives of a union, nested unions and ``Annotated`` unwrapped and ``None`` left
+    out; or the annotation itself."""
+    if get_origin(annotation) is Annotated:
+        return _members(get_args(annotation)[0])
+    if get_origin(annotation) in (Union, UnionType):
+        return [member for arg in get_args(annotation) for member in _members(arg)]
+    return [] if annotation is None or annotation is type(None) else [annotation]
+
+
+def _is_class(annotation: Any) -> bool:
+    """A plain class (``list[X]`` passes for a type on some Python versions)."""
+    return isinstance(annotation, type) and get_origin(annotation) is None
+
+
+def _element(annotation: Any) -> Any:
+    """The element type of ``list[X]`` (or ``list[X] | None``)."""
+    for member in _members(annotation):
+        if get_origin(member) is list and get_args(member):
+            return get_args(member)[0]
     return None
 
 
-def _refine(loc: tuple, error: dict, marked: MarkedYaml) -> tuple:
-    """A model-level check names its field first ("groups is 2 but ..."): point at that field."""
+def _refine(loc: tuple, error: ErrorDetails, marked: MarkedYaml) -> tuple:
+    """Point at the key the problem is about: a model-level check names its field first
+    ("groups is 2 but ..."), a bad or missing adapter is reported at ``adapter``."""
+    if error["type"] in ("union_tag_invalid", "union_tag_not_found"):
+        return loc + ("adapter",)
     if error["type"] != "value_error":
         return loc
     words = error["msg"].replace("Value error, ", "").split()
@@ -80,9 +136,9 @@ def _refine(loc: tuple, error: dict, marked: MarkedYaml) -> tuple:
 def _problems(exc: ValidationError, marked: MarkedYaml, model: type[BaseModel], prefix: tuple = ()) -> list[str]:
     found = []
     for error in exc.errors():
-        loc = _refine(prefix + tuple(error["loc"]), error, marked)
-        found.append((marked.line_of(loc), f"{marked.where(loc)}: {_field_name(loc)}: "
-                                            f"{_expected(error, model, tuple(error['loc']))}"))
+        clean, types = _walk(model, prefix + tuple(error["loc"]))
+        loc = _refine(clean, error, marked)
+        found.append((marked.line_of(loc), f"{marked.where(loc)}: {_field_name(loc)}: {_expected(error, types)}"))
     return [text for _, text in sorted(found, key=lambda item: item[0])]
 
 

@@ -13,6 +13,11 @@ from urllib.parse import urlparse
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from drivers.camera import CameraSettings
+from drivers.interferometer import InterferometerSettings
+from drivers.robot import RobotSettings
+from drivers.rotary_table import RotaryTableSettings
+
 Vec3 = Annotated[list[float], Field(min_length=3, max_length=3, description="three numbers")]
 Pose6 = Annotated[
     list[float],
@@ -87,24 +92,21 @@ class HookSpec(_Strict):
 
 
 # ---------------------------------------------------------------------------------------- station
-class DeviceConfig(BaseModel):
-    """A device: ``adapter`` selects the driver adapter, the other keys are its settings."""
-
-    model_config = ConfigDict(extra="allow")
-    adapter: str = Field(description="adapter name, e.g. ur_rtde, pylon, modbus_tcp, socketcand")
-
-
 class CamerasConfig(_Strict):
-    x: DeviceConfig
-    y: DeviceConfig
-    z: DeviceConfig
+    """The three screen cameras, each with its adapter's settings."""
+
+    x: CameraSettings
+    y: CameraSettings
+    z: CameraSettings
 
 
 class DevicesConfig(_Strict):
-    robot: DeviceConfig
+    """Each device's adapter (``adapter:``) and that adapter's settings, validated by the drivers' models."""
+
+    robot: RobotSettings
     cameras: CamerasConfig
-    rotary_table: DeviceConfig | None = None
-    interferometer: DeviceConfig | None = None
+    rotary_table: RotaryTableSettings | None = None
+    interferometer: InterferometerSettings | None = None
 
 
 class FramesConfig(_Strict):

@@ -2,20 +2,22 @@
 
 from __future__ import annotations
 
-import importlib
 import sys
-from collections.abc import Callable
-from typing import Any, Protocol
+from collections.abc import Callable, Mapping
+from typing import Any, Protocol, TypeVar
 
 import numpy as np
 
-from drivers._errors import DeviceConnectionError, DeviceError
-from drivers.robot._envelope import MotionEnvelope
+import drivers.camera
+import drivers.interferometer
+import drivers.robot
+import drivers.rotary_table
+from drivers import DeviceConnectionError, DeviceError
+from drivers.camera import Camera
+from drivers.interferometer import Interferometer
+from drivers.robot import MotionEnvelope, Robot
+from drivers.rotary_table import RotaryTable
 from procedures._models import StationFile
-
-_KIND_MODULE = {"robot": "drivers.robot", "camera": "drivers.camera", "rotary_table": "drivers.rotary_table",
-                "interferometer": "drivers.interferometer"}
-_OPEN_METHOD = {"robot": "connect", "camera": "open", "rotary_table": "connect", "interferometer": "open"}
 
 
 class Operator(Protocol):
@@ -93,64 +95,96 @@ def default_operator(station: StationFile) -> Operator:
     return ConsoleOperator() if choice == "console" else NoOperator()
 
 
-def create_device(kind: str, config: Any, name: str, **extra: Any) -> Any:
-    """``drivers.<kind>.create(config, name=name)`` (the cross-team factory contract); ``extra``
-    settings that belong to the station rather than the device entry (the robot's envelope) are
-    added to the device's configuration."""
-    module = importlib.import_module(_KIND_MODULE[kind])
-    factory = getattr(module, "create", None)
-    if factory is None:
-        raise DeviceConnectionError(name, "create", f"{_KIND_MODULE[kind]} has no create() factory yet")
-    return factory({**config.model_dump(), **extra}, name=name)
+Device = Robot | Camera | RotaryTable | Interferometer
+DeviceT = TypeVar("DeviceT", Robot, Camera, RotaryTable, Interferometer)
+SCREENS = ("x", "y", "z")
 
 
 class StationRuntime:
-    """Devices of one station, opened on demand and closed together.
+    """Devices of one station, built by the drivers' factories from the station's typed settings,
+    opened on demand and closed together.
 
     Parameters
     ----------
     model : StationFile
-    devices : dict, optional
+    devices : mapping, optional
         Ready device objects by role (``robot``, ``camera:x`` ..., ``rotary_table``,
         ``interferometer``) instead of the factories: tests pass fakes here.
     operator : Operator, optional
     """
 
-    def __init__(self, model: StationFile, *, devices: dict[str, Any] | None = None,
+    def __init__(self, model: StationFile, *, devices: Mapping[str, Device] | None = None,
                  operator: Operator | None = None) -> None:
         self.model = model
         self.envelope = MotionEnvelope.from_dict(model.envelope.model_dump())
         self.reference_tcp_pose = np.asarray(model.frames.reference_tcp_pose, dtype=float)
-        self._given = dict(devices or {})
+        self._given: dict[str, Any] = dict(devices or {})
         self._open: dict[str, Any] = {}
         self.operator = operator if operator is not None else default_operator(model)
 
-    def _config(self, role: str):
-        devices = self.model.devices
-        if role.startswith("camera:"):
-            return "camera", getattr(devices.cameras, role.split(":")[1])
-        config = getattr(devices, role)
-        if config is None:
-            raise DeviceConnectionError(role, "open", f"the station file configures no {role}")
-        return role, config
-
-    def device(self, role: str) -> Any:
+    def device(self, role: str) -> Device:
         """The opened device for ``role`` (opening it on first use)."""
+        if role == "robot":
+            return self.robot
+        if role == "rotary_table":
+            return self.table
+        if role == "interferometer":
+            return self.interferometer
+        if role.startswith("camera:") and role.split(":", 1)[1] in SCREENS:
+            return self.camera(role.split(":", 1)[1])
+        raise DeviceConnectionError(role, "open", "no such device role (robot, camera:x|y|z, rotary_table, "
+                                                  "interferometer)")
+
+    @property
+    def robot(self) -> Robot:
+        # Commanded poses are OPR poses: the TCP is the OPR's nominal mounting on the flange.
+        tcp = np.asarray(self.model.frames.tcp_offset, dtype=float)
+        return self._opened("robot", self._make_robot, then=lambda robot: robot.set_tcp(tcp))
+
+    def camera(self, screen: str) -> Camera:
+        settings = getattr(self.model.devices.cameras, screen)
+        return self._opened(f"camera:{screen}", lambda: drivers.camera.create(settings, name=f"camera:{screen}"))
+
+    @property
+    def table(self) -> RotaryTable:
+        return self._opened("rotary_table", self._make_table)
+
+    @property
+    def interferometer(self) -> Interferometer:
+        return self._opened("interferometer", self._make_interferometer)
+
+    def opened(self, role: str) -> Device | None:
+        return self._open.get(role)
+
+    # ------------------------------------------------------------------------------ building
+    def _make_robot(self) -> Robot:
+        # The robot checks every target against the station's envelope, not a default one.
+        return drivers.robot.create(self.model.devices.robot, name="robot", envelope=self.envelope)
+
+    def _make_table(self) -> RotaryTable:
+        settings = self.model.devices.rotary_table
+        if settings is None:
+            raise DeviceConnectionError("rotary_table", "open", "the station file configures no rotary_table")
+        return drivers.rotary_table.create(settings, name="rotary_table")
+
+    def _make_interferometer(self) -> Interferometer:
+        settings = self.model.devices.interferometer
+        if settings is None:
+            raise DeviceConnectionError("interferometer", "open", "the station file configures no interferometer")
+        return drivers.interferometer.create(settings, name="interferometer")
+
+    def _opened(self, role: str, make: Callable[[], DeviceT],
+                then: Callable[[DeviceT], None] | None = None) -> DeviceT:
+        """The device for ``role``: built (or taken from the given ones), opened and passed to
+        ``then`` on first use; any failure is a ``DeviceError`` naming the role."""
         if role in self._open:
-            return self._open[role]
-        if role in self._given:
-            device = self._given[role]
-        else:
-            kind, config = self._config(role)
-            # The robot checks every target against the station's envelope, not a default one.
-            extra = {"envelope": self.model.envelope.model_dump()} if kind == "robot" else {}
-            device = create_device(kind, config, name=role, **extra)
-        kind = "camera" if role.startswith("camera:") else role
+            device: DeviceT = self._open[role]
+            return device
+        device = self._given[role] if role in self._given else make()
         try:
-            getattr(device, _OPEN_METHOD[kind])()
-            if kind == "robot":
-                # Commanded poses are OPR poses: the TCP is the OPR's nominal mounting on the flange.
-                device.set_tcp(np.asarray(self.model.frames.tcp_offset, dtype=float))
+            device.open()
+            if then is not None:
+                then(device)
         except DeviceError:
             raise
         except Exception as exc:
@@ -158,33 +192,16 @@ class StationRuntime:
         self._open[role] = device
         return device
 
-    @property
-    def robot(self) -> Any:
-        return self.device("robot")
-
-    def camera(self, screen: str) -> Any:
-        return self.device(f"camera:{screen}")
-
-    @property
-    def table(self) -> Any:
-        return self.device("rotary_table")
-
-    @property
-    def interferometer(self) -> Any:
-        return self.device("interferometer")
-
-    def opened(self, role: str) -> Any | None:
-        return self._open.get(role)
-
+    # ------------------------------------------------------------------------------ shutting down
     def safe_state(self) -> list[str]:
         """Stop the robot and the table (whatever is open); returns problems, never raises."""
         problems = []
-        for role, stop in (("robot", lambda d: d.stop()), ("rotary_table", lambda d: d.stop())):
+        for role in ("robot", "rotary_table"):
             device = self._open.get(role)
             if device is None:
                 continue
             try:
-                stop(device)
+                device.stop()
             except Exception as exc:
                 problems.append(f"{role}: stop failed: {exc}")
         return problems

@@ -4,8 +4,8 @@ import cv2
 import numpy as np
 import pytest
 
-from drivers import DeviceConnectionError, DeviceTimeout
-from drivers.camera import GrabFailed, PylonCamera, Roi, create_triplet
+from drivers import DeviceConnectionError, DeviceTimeout, SettingsError
+from drivers.camera import GrabFailed, PylonCamera, PylonSettings, Roi, create, create_triplet
 from sim_devices.camera_twin import CameraFileTwin
 from sim_devices.optics import OpticalBench
 from sim_devices.world import World, WorldConfig
@@ -80,7 +80,8 @@ def test_failed_buffers_are_retried_then_reported(cell, triplet):
 
 def test_single_camera_retries_and_configures(cell):
     _, _, twin = cell
-    camera = PylonCamera(serial=SERIALS["z"], name="z", emulator_image=twin.paths["z"], retries=2, exposure_s=2e-3)
+    settings = PylonSettings(serial=SERIALS["z"], emulator_image=twin.paths["z"], retries=2, exposure_s=2e-3)
+    camera = PylonCamera(settings, name="z")
     with camera:
         camera.force_failed_buffers(2)
         frame = camera.grab()
@@ -92,7 +93,8 @@ def test_single_camera_retries_and_configures(cell):
 def test_a_frame_that_never_comes_times_out(cell):
     _, _, twin = cell
     # Hardware-triggered: nobody fires Line1 on the emulator, so the frame never comes.
-    camera = PylonCamera(serial=SERIALS["x"], emulator_image=twin.paths["x"], trigger_source="Line1", retries=1)
+    camera = PylonCamera(PylonSettings(serial=SERIALS["x"], emulator_image=twin.paths["x"], trigger_source="Line1",
+                                       retries=1))
     with camera:
         with pytest.raises(DeviceTimeout, match="no frame within"):
             camera.grab(timeout=0.2)
@@ -101,9 +103,26 @@ def test_a_frame_that_never_comes_times_out(cell):
 def test_missing_camera_and_closed_camera_are_connection_errors(cell):
     _, _, twin = cell
     with pytest.raises(DeviceConnectionError, match="no camera with serial 0815-0099"):
-        PylonCamera(serial="0815-0099", emulator_image=twin.paths["x"]).open()
-    camera = PylonCamera(serial=SERIALS["x"], emulator_image=twin.paths["x"])
+        PylonCamera(PylonSettings(serial="0815-0099", emulator_image=twin.paths["x"])).open()
+    camera = PylonCamera(PylonSettings(serial=SERIALS["x"], emulator_image=twin.paths["x"]))
     with pytest.raises(DeviceConnectionError, match="not open"):
         camera.grab()
     with pytest.raises(DeviceConnectionError, match="does not exist"):
-        PylonCamera(serial=SERIALS["x"], emulator_image=twin.paths["x"].with_name("nope.bmp")).open()
+        PylonCamera(PylonSettings(serial=SERIALS["x"], emulator_image=twin.paths["x"].with_name("nope.bmp"))).open()
+
+
+def test_factory_takes_the_settings_model_or_a_mapping(cell):
+    _, _, twin = cell
+    camera = create({"adapter": "pylon", "serial": SERIALS["y"], "roi": {"offset_x": 0, "offset_y": 0, "width": 64,
+                                                                         "height": 48}}, name="y")
+    assert isinstance(camera, PylonCamera) and camera.name == "y" and camera.settings.roi == Roi(0, 0, 64, 48)
+    assert create(PylonSettings(serial=SERIALS["y"]), name="y").settings.software_trigger
+    with pytest.raises(SettingsError, match=r"^camera 'y': unknown adapter 'gige'; expected one of pylon$"):
+        create({"adapter": "gige"}, name="y")
+    with pytest.raises(SettingsError, match=r"^camera 'y' \(pylon\): unknown setting 'exposure'; "
+                                            r"expected one of serial, emulator_image, exposure_s"):
+        create({"adapter": "pylon", "serial": "1", "exposure": 1}, name="y")
+    with pytest.raises(SettingsError, match=r"\(pylon\): setting 'serial' is missing"):
+        create({"adapter": "pylon"}, name="y")
+    with pytest.raises(SettingsError, match=r"exposure_s: input should be greater than 0 \(got -0.001\)"):
+        create({"adapter": "pylon", "serial": "1", "exposure_s": -1e-3}, name="y")

@@ -6,13 +6,15 @@ import time
 
 import pytest
 
-from drivers import DeviceConnectionError, ProtocolError
+from drivers import DeviceConnectionError, ProtocolError, SettingsError
 from drivers.interferometer import (
     BeamInterrupted,
+    CanInterferometer,
     CanSample,
     DatumLost,
     FeedGap,
     FrameLayout,
+    SlcanSettings,
     crc8_j1850,
     create,
 )
@@ -72,27 +74,36 @@ def test_corrupt_frames_are_protocol_errors():
         decode_displacement("ifm", 0x181, good[:5])
 
 
-def test_layout_from_dict_and_validation():
-    layout = FrameLayout.from_dict({"displacement_id": "0x185", "resolution": 1e-12})
-    assert layout.displacement_id == 0x185 and layout.resolution == 1e-12
-    with pytest.raises(ValueError, match="unknown field"):
-        FrameLayout.from_dict({"displacment_id": 1})
+def test_layout_is_data_validated_by_its_model():
+    layout = FrameLayout.model_validate({"displacement_id": "0x185", "resolution": 1e-12})
+    assert layout.displacement_id == 0x185 and layout.resolution == 1e-12 and layout.status_id == 0x281
+    assert FrameLayout.model_validate(layout.model_dump()) == layout
+    with pytest.raises(ValueError, match="displacment_id"):
+        FrameLayout.model_validate({"displacment_id": 1})
     with pytest.raises(ValueError, match="11-bit"):
         FrameLayout(displacement_id=0x800)
     with pytest.raises(ValueError, match="must differ"):
         FrameLayout(status_id=0x181)
+    with pytest.raises(ValueError, match="status_rate 2000.0 Hz is above sample_rate"):
+        FrameLayout(status_rate=2000.0)
+    with pytest.raises(ValueError, match="is not a number"):
+        FrameLayout.model_validate({"reply_id": "0xZZ"})
 
 
 def test_create_rejects_bad_configs_clearly():
-    with pytest.raises(ValueError, match="unknown interferometer adapter 'vcan'"):
+    with pytest.raises(SettingsError, match=r"^interferometer 'ifm': unknown adapter 'vcan'; "
+                                            r"expected one of socketcand, slcan$"):
         create({"adapter": "vcan"}, name="ifm")
-    with pytest.raises(ValueError, match=r"needs \['port'\]"):
+    with pytest.raises(SettingsError, match=r"\(socketcand\): setting 'port' is missing"):
         create({"adapter": "socketcand", "host": "127.0.0.1"}, name="ifm")
-    with pytest.raises(ValueError, match="does not take"):
+    with pytest.raises(SettingsError, match=r"\(slcan\): unknown setting 'host'; expected one of port, bitrate, lay"):
         create({"adapter": "slcan", "port": "/dev/null", "host": "x"}, name="ifm")
-    with pytest.raises(ValueError, match="frame layout"):
+    with pytest.raises(SettingsError, match=r"layout.sample_rate: input should be greater than 0 \(got -1\)"):
         create({"adapter": "slcan", "port": "/dev/null", "layout": {"sample_rate": -1}}, name="ifm")
-    ifm = create({"adapter": "slcan", "port": "/nonexistent/tty"}, name="ifm")
+    with pytest.raises(SettingsError, match="8-bit sample counter could wrap"):
+        create({"adapter": "slcan", "port": "/dev/null", "stall_timeout": 0.3}, name="ifm")
+    ifm = create(SlcanSettings(port="/nonexistent/tty", layout=FrameLayout(sample_rate=500.0)), name="ifm")
+    assert isinstance(ifm, CanInterferometer) and ifm.stall_timeout == pytest.approx(0.4)  # 200 sample periods
     with pytest.raises(DeviceConnectionError, match="not open"):
         ifm.average(0.1)
 

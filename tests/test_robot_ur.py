@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from drivers._errors import DeviceConnectionError, DeviceTimeout, MotionRefused
-from drivers.robot import EmergencyStop, MotionEnvelope, ProtectiveStop, Robot, URRobot, create
+from drivers import DeviceConnectionError, DeviceTimeout, MotionRefused, SettingsError
+from drivers.robot import EmergencyStop, MotionEnvelope, ProtectiveStop, Robot, URRobot, URRtdeSettings, create
 from sim_devices import TwinProcess
 from sim_devices._transforms import invert, matrix_to_rotvec, pose6_to_matrix
 from sim_devices.cell import free_loopback_host
@@ -25,8 +25,8 @@ SIGMA_T = 10e-6
 SIGMA_R = np.radians(0.001)
 TCP = np.array([0.0, 0.0, 0.08, 0.0, 0.0, 0.0])
 REFERENCE = np.array([0.45, -0.10, 0.35 - 0.08, np.pi, 0.0, 0.0])  # TCP at the reference flange pose
-ENVELOPE = {"box_min": [0.25, -0.35, 0.10], "box_max": [0.70, 0.25, 0.60], "max_tilt": 0.6,
-            "max_speed": 0.5, "max_acceleration": 2.0}
+ENVELOPE = MotionEnvelope.from_dict({"box_min": [0.25, -0.35, 0.10], "box_max": [0.70, 0.25, 0.60],
+                                     "max_tilt": 0.6, "max_speed": 0.5, "max_acceleration": 2.0})
 _addresses = itertools.count(30)
 
 
@@ -49,21 +49,28 @@ def twin():
 
 @pytest.fixture(scope="module")
 def robot(twin):
-    device = create({"adapter": "ur_rtde", "host": twin.endpoints["host"], "envelope": ENVELOPE,
-                     "connect_timeout": 3.0, "move_timeout": 20.0}, name="robot")
-    device.connect()
+    device = create({"adapter": "ur_rtde", "host": twin.endpoints["host"], "connect_timeout": 3.0,
+                     "move_timeout": 20.0}, name="robot", envelope=ENVELOPE)
+    device.open()
     device.set_tcp(TCP)
     yield device
     device.close()
 
 
 def test_factory_builds_a_robot_and_rejects_bad_config():
-    robot = create({"adapter": "ur_rtde", "host": "127.0.0.99", "envelope": ENVELOPE}, name="arm")
+    robot = create({"adapter": "ur_rtde", "host": "127.0.0.99"}, name="arm", envelope=ENVELOPE)
     assert isinstance(robot, URRobot) and isinstance(robot, Robot) and robot.name == "arm"
-    with pytest.raises(ValueError, match="unknown adapter"):
-        create({"adapter": "kuka"}, name="arm")
-    with pytest.raises(ValueError, match="unknown setting"):
-        create({"adapter": "ur_rtde", "hots": "127.0.0.2"}, name="arm")
+    assert robot.envelope is ENVELOPE and robot.host == "127.0.0.99"
+    assert create(URRtdeSettings(host="127.0.0.98"), name="arm", envelope=ENVELOPE).host == "127.0.0.98"
+    with pytest.raises(SettingsError, match=r"^robot 'arm': unknown adapter 'kuka'; expected one of ur_rtde$"):
+        create({"adapter": "kuka"}, name="arm", envelope=ENVELOPE)
+    with pytest.raises(SettingsError, match=r"^robot 'arm' \(ur_rtde\): unknown setting 'hots'; expected one of host"):
+        create({"adapter": "ur_rtde", "hots": "127.0.0.2"}, name="arm", envelope=ENVELOPE)
+    # The envelope is the station's, never a robot setting.
+    with pytest.raises(SettingsError, match="unknown setting 'envelope'"):
+        create({"adapter": "ur_rtde", "envelope": {}}, name="arm", envelope=ENVELOPE)
+    with pytest.raises(SettingsError, match=r"frequency: input should be greater than 0 \(got -1\)"):
+        create({"adapter": "ur_rtde", "frequency": -1}, name="arm", envelope=ENVELOPE)
 
 
 def test_envelope_refuses_before_anything_is_sent(twin, robot):
@@ -77,7 +84,7 @@ def test_envelope_refuses_before_anything_is_sent(twin, robot):
         robot.move_linear(np.r_[REFERENCE[:3], 0.0, 0.0, 0.0])
     assert len(twin.call("events")) == events  # the controller saw nothing
     # Even with no connection at all, the refusal comes first (no I/O involved).
-    offline = URRobot("offline", host="127.0.0.99", envelope=MotionEnvelope.from_dict(ENVELOPE))
+    offline = URRobot(URRtdeSettings(host="127.0.0.99"), name="offline", envelope=ENVELOPE)
     with pytest.raises(MotionRefused):
         offline.move_linear(outside)
 
@@ -183,9 +190,9 @@ def test_connection_drop_mid_move_raises_a_connection_error():
     # connection would be answered IN_USE, as by a real controller).
     twin = TwinProcess("sim_devices.ur:standalone_host", {"host": free_address(), "time_scale": TIME_SCALE})
     twin.start()
-    robot = URRobot("robot", host=twin.endpoints["host"], envelope=ENVELOPE, move_timeout=20.0)
+    robot = URRobot(URRtdeSettings(host=twin.endpoints["host"], move_timeout=20.0), envelope=ENVELOPE)
     try:
-        robot.connect()
+        robot.open()
         robot.set_tcp(TCP)
         robot.move_linear(REFERENCE)
         twin.call("arm_fault", kind="disconnect", at=0.3)
@@ -199,7 +206,7 @@ def test_connection_drop_mid_move_raises_a_connection_error():
         robot.close()
 
 
-def test_connect_times_out_on_a_silent_server():
+def test_open_times_out_on_a_silent_server():
     """A server that accepts TCP but never answers must give DeviceTimeout, not a hang."""
     host = free_address()
     listeners, accepted = [], []
@@ -223,10 +230,10 @@ def test_connect_times_out_on_a_silent_server():
     for t in threads:
         t.start()
     try:
-        robot = URRobot("robot", host=host, connect_timeout=0.5)
+        robot = URRobot(URRtdeSettings(host=host, connect_timeout=0.5), envelope=MotionEnvelope())
         t0 = time.monotonic()
         with pytest.raises(DeviceTimeout, match="did not answer"):
-            robot.connect()
+            robot.open()
         assert time.monotonic() - t0 < 3.0
     finally:
         stop.set()
@@ -236,6 +243,6 @@ def test_connect_times_out_on_a_silent_server():
             s.close()
 
 
-def test_connect_to_nothing_is_a_connection_error():
+def test_open_to_nothing_is_a_connection_error():
     with pytest.raises(DeviceConnectionError, match="cannot reach"):
-        URRobot("robot", host=free_address(), connect_timeout=0.5).connect()
+        URRobot(URRtdeSettings(host=free_address(), connect_timeout=0.5), envelope=MotionEnvelope()).open()

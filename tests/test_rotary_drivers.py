@@ -8,8 +8,8 @@ import time
 
 import pytest
 
-from drivers._errors import DeviceConnectionError, DeviceTimeout, MotionRefused, ProtocolError
-from drivers.rotary_table import RotaryTable, TableFault, create
+from drivers import DeviceConnectionError, DeviceTimeout, MotionRefused, ProtocolError, SettingsError
+from drivers.rotary_table import GcsSerialSettings, GcsTable, ModbusTable, RegisterMap, RotaryTable, TableFault, create
 from sim_devices import World
 from sim_devices.rotary_table import ARCSEC, RotaryTableTwin
 
@@ -43,7 +43,7 @@ def connected(request, cell):
     world, twin, endpoints = cell
     transport = request.param
     table = create({**_config(transport, endpoints), "timeout": TIMEOUT, "retries": RETRIES}, name="table")
-    table.connect()
+    table.open()
     twin.physics.alarm_reset()
     table.home(timeout=10)
     yield world, twin, table, transport
@@ -212,22 +212,39 @@ def test_non_default_register_map(cell):
             assert abs(reported + 2.5) < 1 * ARCSEC
         wrong_map = create(_config("modbus_tcp", endpoints), name="table")  # default map: gaps
         with pytest.raises(ProtocolError, match="code 2"):
-            wrong_map.connect()
+            wrong_map.open()
     finally:
         twin.stop()
 
 
-def test_factory_rejects_bad_configs():
-    with pytest.raises(ValueError, match="unknown rotary_table adapter"):
+def test_factory_builds_each_adapter_and_rejects_bad_configs():
+    assert isinstance(create({"adapter": "modbus_tcp", "host": "127.0.0.1"}, name="t"), ModbusTable)
+    assert isinstance(create({"adapter": "modbus_rtu", "port": "/dev/null"}, name="t"), ModbusTable)
+    table = create(GcsSerialSettings(port="/dev/null", axis="A"), name="t")
+    assert isinstance(table, GcsTable) and table.axis == "A" and table.timeout == 0.5
+    with pytest.raises(SettingsError, match=r"^rotary_table 't': unknown adapter 'canopen'; "
+                                            r"expected one of modbus_tcp, modbus_rtu, gcs_serial$"):
         create({"adapter": "canopen"}, name="t")
-    with pytest.raises(ValueError, match="missing"):
+    with pytest.raises(SettingsError, match=r"\(modbus_tcp\): setting 'host' is missing"):
         create({"adapter": "modbus_tcp"}, name="t")
-    with pytest.raises(ValueError, match="unknown"):
+    with pytest.raises(SettingsError, match=r"\(gcs_serial\): unknown setting 'unit'; expected one of port, baudrate"):
         create({"adapter": "gcs_serial", "port": "/dev/null", "unit": 3}, name="t")
-    with pytest.raises(ValueError, match="register map"):
+    with pytest.raises(SettingsError, match=r"unknown setting 'register_map.foo'; expected one of alarm, status"):
         create({"adapter": "modbus_rtu", "port": "/dev/null", "register_map": {"foo": 1}}, name="t")
+    with pytest.raises(SettingsError, match="register_map: encoder_position and status both use register 2"):
+        create({"adapter": "modbus_rtu", "port": "/dev/null", "register_map": {"status": 2}}, name="t")
+    with pytest.raises(SettingsError, match="axis: string should match pattern"):
+        create({"adapter": "gcs_serial", "port": "/dev/null", "axis": "1 2"}, name="t")
     with pytest.raises(DeviceConnectionError):
-        create({"adapter": "gcs_serial", "port": "/nonexistent/tty"}, name="t").connect()
+        create({"adapter": "gcs_serial", "port": "/nonexistent/tty"}, name="t").open()
+
+
+def test_register_map_is_data_with_partial_groups():
+    register_map = RegisterMap.model_validate({"word_order": "little", "status_bits": {"homed": 12}})
+    assert register_map.status_bits.homed == 12 and register_map.status_bits.in_position == 3
+    assert register_map.opcodes.home == 0x6E
+    assert RegisterMap.model_validate(register_map.model_dump()) == register_map
+    assert register_map.split32(-2) == [0xFFFE, 0xFFFF] and register_map.join32([0xFFFE, 0xFFFF]) == -2
 
 
 def test_twins_leak_no_threads_or_fds():

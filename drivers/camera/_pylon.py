@@ -1,7 +1,7 @@
 """``PylonCamera``: Basler GigE/USB3 cameras (and the pylon camera emulator) through pypylon.
 
-Station-file settings (``create({"adapter": "pylon", ...}, name=...)``)
------------------------------------------------------------------------
+Settings (``PylonSettings``: a station file's camera entry with ``adapter: pylon``)
+-----------------------------------------------------------------------------------
 serial : str
     The camera's serial number (emulated cameras are ``0815-0000``, ``0815-0001`` …).
 emulator_image : path, optional
@@ -16,7 +16,7 @@ exposure_s, gain_db : float, optional
     ``ExposureTime`` (µs on the camera) or ``ExposureTimeAbs``; ``Gain`` in dB.
 pixel_format : str, optional
     ``Mono8`` (default on the emulator), ``Mono10``, ``Mono12``, ``Mono16``.
-roi : mapping {offset_x, offset_y, width, height}, optional
+roi : {offset_x, offset_y, width, height}, optional
 software_trigger : bool, default True
     Each ``grab`` drains stale buffers, fires ``TriggerSoftware`` and waits for that exposure's
     frame: a frame is never older than the ``grab`` call. With ``False`` the camera free-runs and
@@ -39,13 +39,13 @@ from __future__ import annotations
 import os
 import time
 from collections.abc import Mapping
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from drivers._errors import DeviceConnectionError, DeviceError, DeviceTimeout
 from drivers.camera._interface import Frame, GrabFailed, Roi
+from drivers.camera._settings import PylonSettings
 
 SATURATION = {"Mono8": 255, "Mono10": 1023, "Mono10p": 1023, "Mono12": 4095, "Mono12p": 4095,
               "Mono12Packed": 4095, "Mono16": 65535}
@@ -75,38 +75,21 @@ def ensure_emulated_cameras(count: int = _EMULATED_CAMERAS) -> None:
 class PylonCamera:
     """One Basler camera selected by serial number; see the module docstring for the settings."""
 
-    def __init__(
-        self,
-        *,
-        serial: str,
-        name: str | None = None,
-        emulator_image: str | os.PathLike | None = None,
-        exposure_s: float | None = None,
-        gain_db: float | None = None,
-        pixel_format: str | None = None,
-        roi: Roi | Mapping[str, int] | None = None,
-        software_trigger: bool = True,
-        trigger_source: str | None = None,
-        retries: int = 2,
-        timeout_s: float = 2.0,
-    ) -> None:
-        if not serial:
-            raise ValueError("pylon camera: 'serial' is required")
-        if retries < 0:
-            raise ValueError(f"pylon camera: retries must be ≥ 0, got {retries}")
-        self.serial = str(serial)
+    def __init__(self, settings: PylonSettings, *, name: str | None = None) -> None:
+        self.settings = settings
+        self.serial = settings.serial
         self.name = name or self.serial
-        self.emulator_image = Path(emulator_image) if emulator_image else None
-        self.retries = int(retries)
-        self.timeout_s = float(timeout_s)
+        self.emulator_image = settings.emulator_image
+        self.retries = settings.retries
+        self.timeout_s = settings.timeout_s
         self._settings: dict[str, Any] = {
-            "exposure_s": exposure_s,
-            "gain_db": gain_db,
-            "pixel_format": pixel_format,
-            "roi": _as_roi(roi),
-            "software_trigger": bool(software_trigger),
+            "exposure_s": settings.exposure_s,
+            "gain_db": settings.gain_db,
+            "pixel_format": settings.pixel_format,
+            "roi": settings.roi,
+            "software_trigger": settings.software_trigger,
         }
-        self.trigger_source = trigger_source or ("Software" if software_trigger else None)
+        self.trigger_source = settings.trigger_source or ("Software" if settings.software_trigger else None)
         self._camera: Any = None
         self._frame_id = 0
         self._loaded_image: tuple[int, int, int] | None = None  # stat of the emulator file in use
@@ -166,7 +149,7 @@ class PylonCamera:
         self.open()
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     @property
@@ -184,7 +167,7 @@ class PylonCamera:
                 "exposure_s": exposure_s,
                 "gain_db": gain_db,
                 "pixel_format": pixel_format,
-                "roi": _as_roi(roi),
+                "roi": roi,
                 "software_trigger": software_trigger,
             }.items()
             if v is not None
@@ -329,6 +312,8 @@ class PylonCamera:
 
     # ------------------------------------------------------------------ emulator helpers
     def _image_stamp(self) -> tuple[int, int, int] | None:
+        if self.emulator_image is None:
+            return None
         try:
             st = os.stat(self.emulator_image)
         except OSError:
@@ -356,11 +341,3 @@ class PylonCamera:
             return DeviceConnectionError(self._device, operation, "the camera was removed")
         return kind(self._device, operation, str(error).split(" : ")[0])
 
-
-def _as_roi(roi: Roi | Mapping[str, int] | None) -> Roi | None:
-    if roi is None or isinstance(roi, Roi):
-        return roi
-    try:
-        return Roi(**{k: int(v) for k, v in dict(roi).items()})
-    except TypeError:
-        raise ValueError(f"roi: expected offset_x, offset_y, width, height, got {dict(roi)!r}") from None

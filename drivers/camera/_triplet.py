@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 from drivers._errors import DeviceConnectionError, DeviceError, DeviceTimeout
-from drivers.camera._interface import Camera, Frame, GrabFailed
+from drivers.camera._interface import Camera, Frame, GrabFailed, TriggeredCamera
 
 
 class CameraTriplet:
@@ -52,7 +52,7 @@ class CameraTriplet:
         self.open()
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     def grab(self, timeout: float = 2.0) -> dict[str, Frame]:
@@ -71,23 +71,22 @@ class CameraTriplet:
     def _attempt(self, timeout: float) -> tuple[dict[str, Frame], dict[str, DeviceError]]:
         frames: dict[str, Frame] = {}
         failures: dict[str, DeviceError] = {}
-        triggered = []
+        triggered: dict[str, TriggeredCamera] = {}
         for key, camera in self.cameras.items():
-            if hasattr(camera, "trigger") and hasattr(camera, "retrieve"):
+            if isinstance(camera, TriggeredCamera):
                 try:
                     camera.trigger()
-                    triggered.append(key)
+                    triggered[key] = camera
                 except DeviceError as error:
                     failures[key] = error
         for key, camera in self.cameras.items():
             if key in failures:
                 continue
             try:
-                frames[key] = camera.retrieve(timeout) if key in triggered else camera.grab(timeout)
+                frames[key] = triggered[key].retrieve(timeout) if key in triggered else camera.grab(timeout)
             except DeviceError as error:
                 failures[key] = error
         return frames, failures
-
 
 def _describe(failures: Mapping[str, DeviceError]) -> str:
     return "; ".join(f"camera {key} missing: {error.cause}" for key, error in failures.items())

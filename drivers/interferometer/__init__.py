@@ -1,13 +1,9 @@
-"""Laser interferometers: the ``Interferometer`` interface and adapters.
+"""Laser interferometers: the ``Interferometer`` interface, the settings, the frame layout and adapters.
 
-``create(config, name=...)`` builds an adapter from a station-file mapping:
-
-- ``{adapter: socketcand, host: 127.0.0.1, port: 29536, channel: can0, layout: {...}}``
-- ``{adapter: slcan, port: /dev/ttyACM0, bitrate: 1000000, layout: {...}}``
-
-``layout`` (optional) overrides ``FrameLayout`` fields (ids, resolution, rates). Any further keys
-are ``CanInterferometer`` options: ``ring_capacity``, ``open_timeout``, ``open_attempts``,
-``stall_timeout``, ``reconnect_interval``, ``command_timeout``.
+``create(settings, name=...)`` builds the adapter that ``settings.adapter`` names: ``socketcand``
+(a socketcand daemon over TCP) or ``slcan`` (a Lawicel USB-CAN adapter), both ``CanInterferometer``
+reading the feed described by a ``FrameLayout``. It is not opened yet: call ``open()`` or use it
+as a context manager.
 """
 
 from __future__ import annotations
@@ -15,39 +11,33 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
+from drivers._settings import SettingsUnion
 from drivers.interferometer._can import CanInterferometer
 from drivers.interferometer._feed import CanSample
 from drivers.interferometer._interface import BeamInterrupted, DatumLost, FeedGap, Interferometer, Sample
 from drivers.interferometer._layout import FrameLayout, StatusFrame, crc8_j1850, frame_crc
+from drivers.interferometer._settings import InterferometerSettings, SlcanSettings, SocketcandSettings
 
-ADAPTERS = ("socketcand", "slcan")
-
-_OPTIONS = {"ring_capacity", "open_timeout", "open_attempts", "stall_timeout", "reconnect_interval",
-            "command_timeout"}
-_REQUIRED = {"socketcand": {"host", "port"}, "slcan": {"port"}}
-_ALLOWED = {"socketcand": {"host", "port", "channel", "layout"} | _OPTIONS,
-            "slcan": {"port", "bitrate", "layout"} | _OPTIONS}
+_SETTINGS_UNION: SettingsUnion[InterferometerSettings] = SettingsUnion(InterferometerSettings, "interferometer")
+ADAPTERS = tuple(_SETTINGS_UNION.models)
 
 
-def create(config: Mapping[str, Any], *, name: str = "interferometer") -> CanInterferometer:
-    """Build (not open) the interferometer adapter described by ``config``.
+def create(settings: InterferometerSettings | Mapping[str, Any], *, name: str = "interferometer") -> Interferometer:
+    """The interferometer adapter for ``settings`` (a model, or a mapping validated as one).
 
-    Raises ``ValueError`` with a clear message for an unknown adapter or bad keys.
+    Parameters
+    ----------
+    settings : InterferometerSettings or mapping
+        The station file's ``devices.interferometer`` entry.
+    name : str
+        Device name used in every error.
+
+    Raises
+    ------
+    SettingsError
+        For a mapping that is not valid settings (one line naming the adapter and the setting).
     """
-    settings = dict(config)
-    adapter = settings.pop("adapter", None)
-    if adapter not in ADAPTERS:
-        raise ValueError(f"{name}: unknown interferometer adapter {adapter!r}; expected one of {list(ADAPTERS)}")
-    missing = _REQUIRED[adapter] - set(settings)
-    if missing:
-        raise ValueError(f"{name}: adapter {adapter!r} needs {sorted(missing)}")
-    unknown = set(settings) - _ALLOWED[adapter]
-    if unknown:
-        raise ValueError(f"{name}: adapter {adapter!r} does not take {sorted(unknown)}; "
-                         f"allowed: {sorted(_ALLOWED[adapter])}")
-    if adapter == "socketcand":
-        return CanInterferometer.socketcand(name=name, **settings)
-    return CanInterferometer.slcan(name=name, **settings)
+    return CanInterferometer(_SETTINGS_UNION.validate(settings, name=name), name=name)
 
 
 __all__ = [
@@ -59,7 +49,10 @@ __all__ = [
     "FeedGap",
     "FrameLayout",
     "Interferometer",
+    "InterferometerSettings",
     "Sample",
+    "SlcanSettings",
+    "SocketcandSettings",
     "StatusFrame",
     "crc8_j1850",
     "create",

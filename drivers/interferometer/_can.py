@@ -31,7 +31,6 @@ from drivers.interferometer._layout import (
     OPCODE_DATUM,
     OPCODE_SYNC,
     REPLY_DONE,
-    FrameLayout,
     ReplyFrame,
     StatusFrame,
     decode_displacement,
@@ -39,6 +38,7 @@ from drivers.interferometer._layout import (
     decode_status,
     encode_command,
 )
+from drivers.interferometer._settings import SlcanSettings, SocketcandSettings
 
 
 class _DropSplitFrameWarnings(logging.Filter):
@@ -60,58 +60,40 @@ class CanInterferometer:
 
     Parameters
     ----------
-    name : str
-        Device name used in every error.
-    bus_kwargs : dict
-        Keyword arguments for ``can.Bus`` (``interface="socketcand"`` with ``host``, ``port``,
-        ``channel``; or ``interface="slcan"`` with ``channel`` = serial port). Use the
-        ``socketcand`` / ``slcan`` constructors rather than building this by hand.
-    layout : FrameLayout
-        Ids, scaling and rates of the feed (see ``drivers.interferometer._layout``).
-    ring_capacity : int
-        Samples kept (default 65536: a minute at 1 kHz).
-    open_timeout : float
-        Seconds allowed for one attempt to open the bus (handshake included).
-    open_attempts : int
-        Attempts before ``open()`` gives up. socketcand's handshake fails if a frame arrives in the
-        same read as the last ``< ok >``; a retry fixes that.
-    stall_timeout : float
-        A silence longer than this between two samples is a gap even if the counter is contiguous.
-        Must stay below 256 sample periods so the 8-bit counter cannot alias (0.2 s at 1 kHz).
-        Measured on the frames' timestamps: the device's clock for socketcand (immune to host
+    settings : SocketcandSettings or SlcanSettings
+        The transport (socketcand daemon or slcan adapter), the ``FrameLayout`` and the receive
+        options; their field descriptions say what each does. Two need more words:
+        ``open_attempts``: socketcand's handshake fails if a frame arrives in the same read as the
+        last ``< ok >``; a retry fixes that. ``stall_timeout``: a silence longer than this between
+        two samples is a gap even if the counter is contiguous; it must stay below 256 sample
+        periods so the 8-bit counter cannot alias (default 200 periods, 0.2 s at 1 kHz). It is
+        measured on the frames' timestamps: the device's clock for socketcand (immune to host
         scheduling hiccups), the host's arrival clock for slcan (a host starved for longer than
         this reports a stall too: conservative, never a wrong value).
-    reconnect_interval : float
-        Seconds between attempts to re-open a lost connection.
-    command_timeout : float
-        Seconds to wait for the head's reply to a command (``zero``, the ``average`` barrier).
-    sync_before_average : bool
-        ``average`` first sends a sync command and averages only samples after its reply, i.e.
-        samples taken after the call (not frames still in flight from before, e.g. before the
-        robot settled). Costs one round trip (~1-2 ms).
+    name : str
+        Device name used in every error.
     """
 
-    def __init__(self, *, name: str, bus_kwargs: Mapping[str, Any], layout: FrameLayout | None = None,
-                 ring_capacity: int = 65536, open_timeout: float = 5.0, open_attempts: int = 5,
-                 stall_timeout: float | None = None, reconnect_interval: float = 0.5,
-                 command_timeout: float = 3.0, sync_before_average: bool = True) -> None:
+    def __init__(self, settings: SocketcandSettings | SlcanSettings, *, name: str = "interferometer") -> None:
         self.name = name
-        self.layout = layout or FrameLayout()
-        self._bus_kwargs = dict(bus_kwargs)
-        self._transport = str(self._bus_kwargs.get("interface"))
-        if self._transport not in ("socketcand", "slcan"):
-            raise ValueError(f"{name}: interface must be 'socketcand' or 'slcan', got {self._transport!r}")
-        self.open_timeout = float(open_timeout)
-        self.open_attempts = max(1, int(open_attempts))
-        default_stall = 200.0 / self.layout.sample_rate
-        self.stall_timeout = float(stall_timeout if stall_timeout is not None else default_stall)
-        if self.stall_timeout * self.layout.sample_rate >= COUNTER_MODULUS:
-            raise ValueError(f"{name}: stall_timeout {self.stall_timeout} s spans >= {COUNTER_MODULUS} samples; "
-                             "the 8-bit counter could wrap unnoticed")
-        self.reconnect_interval = float(reconnect_interval)
-        self.command_timeout = float(command_timeout)
-        self.sync_before_average = bool(sync_before_average)
-        self._buffer = FeedBuffer(ring_capacity, name)
+        self.settings = settings
+        self.layout = settings.layout
+        if isinstance(settings, SocketcandSettings):
+            self._transport = "socketcand"
+            self._bus_kwargs: dict[str, Any] = {"interface": "socketcand", "host": settings.host,
+                                                "port": settings.port, "channel": settings.channel}
+        else:
+            self._transport = "slcan"
+            self._bus_kwargs = {"interface": "slcan", "channel": settings.port, "bitrate": settings.bitrate,
+                                "sleep_after_open": 0}
+        self.open_timeout = settings.open_timeout
+        self.open_attempts = settings.open_attempts
+        self.stall_timeout = (settings.stall_timeout if settings.stall_timeout is not None
+                              else 200.0 / self.layout.sample_rate)
+        self.reconnect_interval = settings.reconnect_interval
+        self.command_timeout = settings.command_timeout
+        self.sync_before_average = settings.sync_before_average
+        self._buffer = FeedBuffer(settings.ring_capacity, name)
         self._buffer.set_failure_probe(self._connection_failure)
 
         self._bus: can.BusABC | None = None
@@ -140,23 +122,6 @@ class CanInterferometer:
         self._tokens = itertools.cycle(range(1, 256))
         self._link_epoch = 0  # +1 at every lost connection: a reply can never cross it
 
-    # ------------------------------------------------------------------------------ constructors
-    @classmethod
-    def socketcand(cls, *, name: str, host: str, port: int, channel: str = "can0",
-                   layout: FrameLayout | Mapping | None = None, **options: Any) -> CanInterferometer:
-        """A feed served by a socketcand daemon at ``host:port`` on CAN ``channel``."""
-        return cls(name=name, bus_kwargs={"interface": "socketcand", "host": str(host), "port": int(port),
-                                          "channel": str(channel)},
-                   layout=_layout(layout), **options)
-
-    @classmethod
-    def slcan(cls, *, name: str, port: str, bitrate: int = 1_000_000,
-              layout: FrameLayout | Mapping | None = None, **options: Any) -> CanInterferometer:
-        """A feed on an slcan (Lawicel ASCII) adapter at serial ``port``."""
-        return cls(name=name, bus_kwargs={"interface": "slcan", "channel": str(port), "bitrate": int(bitrate),
-                                          "sleep_after_open": 0},
-                   layout=_layout(layout), **options)
-
     # ------------------------------------------------------------------------------ lifecycle
     def open(self) -> None:
         """Open the bus (with retries) and start receiving. Raises ``DeviceConnectionError``."""
@@ -182,7 +147,7 @@ class CanInterferometer:
         self.open()
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     # ------------------------------------------------------------------------------ readings
@@ -467,10 +432,6 @@ class CanInterferometer:
 
 
 # ---------------------------------------------------------------------------------------- helpers
-def _layout(layout: FrameLayout | Mapping | None) -> FrameLayout:
-    return layout if isinstance(layout, FrameLayout) else FrameLayout.from_dict(layout)
-
-
 def _is_garbage(exc: BaseException) -> bool:
     """True when the error is undecodable data rather than a broken transport."""
     chain: BaseException | None = exc

@@ -78,12 +78,18 @@ class FeedBuffer:
         with self._cond:
             if self._next_seq == 0:
                 return None, math.inf
-            return self._ring[(self._next_seq - 1) % self._capacity], time.monotonic() - self._last_mono
+            return self._stored(self._next_seq - 1), time.monotonic() - self._last_mono
 
     def recent(self, count: int) -> list[CanSample]:
         with self._cond:
             count = max(0, min(int(count), self._next_seq, self._capacity))
-            return [self._ring[s % self._capacity] for s in range(self._next_seq - count, self._next_seq)]
+            return [self._stored(s) for s in range(self._next_seq - count, self._next_seq)]
+
+    def _stored(self, seq: int) -> CanSample:
+        """Sample ``seq``, which the caller knows is still in the ring (held under the lock)."""
+        sample = self._ring[seq % self._capacity]
+        assert sample is not None, f"sample {seq} was never stored"
+        return sample
 
     def get(self, seq: int, deadline: float, operation: str) -> CanSample:
         """Sample number ``seq``, waiting until ``deadline`` (monotonic) for it to arrive."""
@@ -102,7 +108,7 @@ class FeedBuffer:
                 raise FeedGap(self.device, operation,
                               f"reader fell {self._next_seq - seq} samples behind; the ring buffer holds "
                               f"{self._capacity}")
-            return self._ring[seq % self._capacity]
+            return self._stored(seq)
 
     def stream(self, timeout: float, operation: str) -> Iterator[CanSample]:
         """Every sample from now on; ``FeedGap`` when none arrives within ``timeout`` seconds."""

@@ -2,7 +2,9 @@
 
 No interferometer vendor publishes a CAN layout, so this one is ours (documented in
 ``docs/interferometer.md``). Everything that a different head or firmware could change (ids,
-scaling, rates) lives in ``FrameLayout``; the byte positions below are the protocol itself.
+scaling, rates) lives in ``FrameLayout``, a pydantic model a station file may carry; the byte
+positions below are the protocol itself, encoded and decoded here by the driver (the twin has
+its own code for them).
 
 Every frame is 8 bytes, standard 11-bit id, little-endian, and ends with a CRC-8/SAE-J1850
 (poly 0x1D, init 0xFF, xor-out 0xFF) computed over the id (2 bytes, big-endian) followed by
@@ -39,11 +41,11 @@ Command (host → head, ``command_id``, default 0x601) and reply (``reply_id``, 
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from dataclasses import asdict, dataclass
-from typing import Any
+from dataclasses import dataclass
+from typing import Annotated
 
-from drivers._config import checked_fields
+from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Field, WithJsonSchema, model_validator
+
 from drivers._errors import ProtocolError
 
 OPCODE_DATUM = 0x01
@@ -62,43 +64,58 @@ COUNTER_MODULUS = 256
 DISPLACEMENT_BITS = 40
 
 
-@dataclass(frozen=True)
-class FrameLayout:
-    """Ids, scaling and rates of the feed. Build from a station file with ``from_dict``."""
+def _can_id(value: object) -> object:
+    """A CAN id as an int: YAML gives ``0x181`` as an int already, a quoted ``"0x181"`` as text."""
+    if isinstance(value, str):
+        try:
+            return int(value, 0)
+        except ValueError:
+            raise ValueError(f"{value!r} is not a number (write 0x181 or 385)") from None
+    return value
 
-    displacement_id: int = 0x181
-    status_id: int = 0x281
-    command_id: int = 0x601
-    reply_id: int = 0x581
-    resolution: float = 1e-10  # metres per count (0.1 nm; the int40 field then spans ±55 m)
-    sample_rate: float = 1000.0  # displacement frames per second
-    status_rate: float = 10.0  # heartbeat frames per second
 
-    def __post_init__(self) -> None:
+def _standard_id(value: int) -> int:
+    if not 0 <= value <= 0x7FF:
+        raise ValueError(f"CAN id {value:#x} is not a standard 11-bit id (0..0x7FF)")
+    return value
+
+
+CanId = Annotated[
+    int,
+    BeforeValidator(_can_id),
+    AfterValidator(_standard_id),
+    WithJsonSchema({"anyOf": [{"type": "integer", "minimum": 0, "maximum": 0x7FF},
+                              {"type": "string", "pattern": "^0[xX][0-9a-fA-F]{1,3}$"}],
+                    "description": "standard 11-bit CAN id (0..0x7FF), as a number or a hex string"}),
+]
+
+
+class FrameLayout(BaseModel):
+    """Ids, scaling and rates of the feed: data a station file may carry (``layout:``).
+
+    Any subset of fields may be given; ids are ints or hex strings (``"0x181"``).
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    displacement_id: CanId = 0x181
+    status_id: CanId = 0x281
+    command_id: CanId = 0x601
+    reply_id: CanId = 0x581
+    resolution: float = Field(
+        1e-10, gt=0, description="metres per count (0.1 nm; the int40 field then spans +-55 m)"
+    )
+    sample_rate: float = Field(1000.0, gt=0, le=10_000, description="displacement frames per second, Hz")
+    status_rate: float = Field(10.0, gt=0, description="heartbeat frames per second, Hz (at most sample_rate)")
+
+    @model_validator(mode="after")
+    def _consistent(self) -> FrameLayout:
         ids = [self.displacement_id, self.status_id, self.command_id, self.reply_id]
-        for can_id in ids:
-            if not 0 <= int(can_id) <= 0x7FF:
-                raise ValueError(f"frame layout: CAN id {can_id!r} is not a standard 11-bit id (0..0x7FF)")
         if len(set(ids)) != len(ids):
-            raise ValueError(f"frame layout: the four CAN ids must differ, got {[hex(i) for i in ids]}")
-        if not self.resolution > 0:
-            raise ValueError(f"frame layout: resolution must be > 0 m, got {self.resolution!r}")
-        if not 0 < self.sample_rate <= 10_000:
-            raise ValueError(f"frame layout: sample_rate must be in (0, 10000] Hz, got {self.sample_rate!r}")
-        if not 0 < self.status_rate <= self.sample_rate:
-            raise ValueError(f"frame layout: status_rate must be in (0, sample_rate], got {self.status_rate!r}")
-
-    @classmethod
-    def from_dict(cls, data: Mapping[str, Any] | None) -> FrameLayout:
-        """Accepts ids as ints or hex strings (``"0x181"``)."""
-        data = checked_fields(cls, data, "frame layout")
-        for key in ("displacement_id", "status_id", "command_id", "reply_id"):
-            if isinstance(data.get(key), str):
-                data[key] = int(data[key], 0)
-        return cls(**data)
-
-    def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
+            raise ValueError(f"the four CAN ids must differ, got {[hex(i) for i in ids]}")
+        if self.status_rate > self.sample_rate:
+            raise ValueError(f"status_rate {self.status_rate} Hz is above sample_rate {self.sample_rate} Hz")
+        return self
 
     @property
     def max_counts(self) -> int:

@@ -1,8 +1,16 @@
-"""Robot controllers: the ``Robot`` interface, the motion envelope, and adapters."""
+"""Robot controllers: the ``Robot`` interface, the motion envelope, the settings and adapters.
+
+``create(settings, name=..., envelope=...)`` builds the adapter that ``settings.adapter`` names
+(``ur_rtde``) with the station's ``MotionEnvelope``; it is not opened yet (call ``open()`` or use
+it as a context manager).
+"""
+
+from __future__ import annotations
 
 from collections.abc import Mapping
 from typing import Any
 
+from drivers._settings import SettingsUnion
 from drivers.robot._envelope import MotionEnvelope
 from drivers.robot._interface import (
     EmergencyStop,
@@ -12,28 +20,45 @@ from drivers.robot._interface import (
     Robot,
     RobotState,
 )
-from drivers.robot._ur import URRobot, create_ur_robot
+from drivers.robot._settings import RobotSettings, URRtdeSettings
+from drivers.robot._ur import URRobot
 
-ADAPTERS = {"ur_rtde": create_ur_robot}
+_SETTINGS_UNION: SettingsUnion[RobotSettings] = SettingsUnion(RobotSettings, "robot")
+ADAPTERS = tuple(_SETTINGS_UNION.models)
 
 
-def create(config: Mapping[str, Any], *, name: str = "robot") -> Robot:
-    """Build the robot adapter that ``config["adapter"]`` names (``ur_rtde``); the other keys are
-    the adapter's settings (see ``URRobot``)."""
-    adapter = dict(config).get("adapter")
-    if adapter not in ADAPTERS:
-        raise ValueError(f"robot {name!r}: unknown adapter {adapter!r}; expected one of {sorted(ADAPTERS)}")
-    return ADAPTERS[adapter](config, name=name)
+def create(settings: RobotSettings | Mapping[str, Any], *, name: str = "robot", envelope: MotionEnvelope) -> Robot:
+    """The robot adapter for ``settings`` (a ``RobotSettings`` model, or a mapping validated as one).
+
+    Parameters
+    ----------
+    settings : RobotSettings or mapping
+        The station file's ``devices.robot`` entry.
+    name : str
+        Device name used in every error.
+    envelope : MotionEnvelope
+        The station's motion limits, checked before any motion is sent.
+
+    Raises
+    ------
+    SettingsError
+        For a mapping that is not valid settings (one line naming the adapter and the setting).
+    """
+    checked = _SETTINGS_UNION.validate(settings, name=name)
+    return URRobot(checked, name=name, envelope=envelope)
 
 
 __all__ = [
+    "ADAPTERS",
     "EmergencyStop",
     "MotionEnvelope",
     "MoveFailed",
     "ProgramStopped",
     "ProtectiveStop",
     "Robot",
+    "RobotSettings",
     "RobotState",
     "URRobot",
+    "URRtdeSettings",
     "create",
 ]

@@ -41,6 +41,7 @@ class MotionEnvelope:
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> MotionEnvelope:
+        """The envelope from a station file's ``envelope`` mapping (field names as above, SI units)."""
         kwargs = dict(data)
         for key in ("box_min", "box_max", "reference_rotvec"):
             if key in kwargs:

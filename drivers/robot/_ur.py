@@ -5,7 +5,7 @@ How it keeps every promise of the interface
 - **Envelope first.** Every motion is checked against the ``MotionEnvelope`` (target pose, speed,
   acceleration) and refused with ``MotionRefused`` before anything is sent. For joint moves the
   target TCP pose comes from the controller's own forward kinematics (a query, not a motion).
-- **Never a hang.** The client's constructors hold the GIL while they wait, so ``connect()`` first
+- **Never a hang.** The client's constructors hold the GIL while they wait, so ``open()`` first
   probes the dashboard greeting and the RTDE version handshake with plain sockets and timeouts
   (``DeviceTimeout`` / ``DeviceConnectionError``); only a controller that answers is handed to the
   client. Every later call that can wait runs on a worker thread (the client releases the GIL) with
@@ -26,7 +26,7 @@ import socket
 import struct
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -34,6 +34,7 @@ import numpy as np
 from drivers._errors import DeviceConnectionError, DeviceError, DeviceTimeout, MotionRefused
 from drivers.robot._envelope import MotionEnvelope
 from drivers.robot._interface import EmergencyStop, MoveFailed, ProgramStopped, ProtectiveStop, RobotState
+from drivers.robot._settings import URRtdeSettings
 
 RTDE_PORT, DASHBOARD_PORT, SCRIPT_PORT = 30004, 29999, 30003
 SAFETY_PROTECTIVE_BIT, SAFETY_EMERGENCY_BIT = 1 << 2, 1 << 7
@@ -94,60 +95,40 @@ class _Worker:
 
 
 class URRobot:
-    """A UR e-Series controller through ``rtde_control`` / ``rtde_receive`` (ur_rtde ≥ 1.6).
+    """A UR e-Series controller through ``rtde_control`` / ``rtde_receive`` (ur_rtde >= 1.6).
 
-    Parameters (also the keys of the ``ur_rtde`` adapter config)
+    Parameters
     ----------
+    settings : URRtdeSettings
+        Address, RTDE frequency and timeouts (see the model's field descriptions).
     name : str
         Device name used in every error.
-    host : str
-        Controller address (fixed UR ports 30004/29999/30003).
-    frequency : float
-        RTDE output frequency in Hz (500 for e-Series).
-    envelope : MotionEnvelope or mapping, optional
-        Motion limits; a mapping goes through ``MotionEnvelope.from_dict``. Default: the
-        ``MotionEnvelope()`` defaults.
-    connect_timeout : float
-        Seconds for each probe step and for the client constructors' handshakes.
-    command_timeout : float
-        Seconds for any non-motion call (setTcp, queries, stop, disconnect).
-    move_timeout : float
-        Default seconds for a blocking move (``timeout`` per call overrides it).
-    stale_timeout : float
-        Seconds without a new RTDE timestamp after which the connection counts as lost.
-    upper_range_registers : bool
-        Use registers 24–47 (when 0–23 belong to a fieldbus).
+    envelope : MotionEnvelope
+        The station's motion limits; every target, speed and acceleration is checked against
+        them before anything is sent.
     """
 
-    def __init__(self, name: str = "robot", *, host: str = "127.0.0.2", frequency: float = 500.0,
-                 envelope: MotionEnvelope | Mapping[str, Any] | None = None, connect_timeout: float = 5.0,
-                 command_timeout: float = 10.0, move_timeout: float = 120.0, stale_timeout: float = 2.0,
-                 upper_range_registers: bool = False) -> None:
+    def __init__(self, settings: URRtdeSettings, *, name: str = "robot", envelope: MotionEnvelope) -> None:
         self.name = name
-        self.host = host
-        self.frequency = float(frequency)
-        if envelope is None:
-            envelope = MotionEnvelope()
-        elif not isinstance(envelope, MotionEnvelope):
-            try:
-                envelope = MotionEnvelope.from_dict(envelope)
-            except (TypeError, ValueError) as exc:
-                raise ValueError(f"{name}: bad envelope config: {exc}") from None
+        self.settings = settings
         self.envelope = envelope
-        self.connect_timeout = float(connect_timeout)
-        self.command_timeout = float(command_timeout)
-        self.move_timeout = float(move_timeout)
-        self.stale_timeout = float(stale_timeout)
-        self.upper_range_registers = bool(upper_range_registers)
-        self._control = None
-        self._receive = None
+        self.host = settings.host
+        self.frequency = settings.frequency
+        self.connect_timeout = settings.connect_timeout
+        self.command_timeout = settings.command_timeout
+        self.move_timeout = settings.move_timeout
+        self.stale_timeout = settings.stale_timeout
+        self.upper_range_registers = settings.upper_range_registers
+        # ur_rtde ships no type information: the clients are typed as what they are to mypy.
+        self._control: Any = None
+        self._receive: Any = None
         self._worker = _Worker()
         self._broken: str | None = None
         self._last_stamp = (-1.0, 0.0)
         self._lock = threading.RLock()
 
     # ----------------------------------------------------------------------------- connection
-    def connect(self) -> None:
+    def open(self) -> None:
         """Probe the controller with timeouts, then open the ur_rtde clients."""
         if self._control is not None and self._broken is None:
             return
@@ -157,7 +138,7 @@ class URRobot:
             import rtde_control
             import rtde_receive
         except ImportError as exc:  # pragma: no cover - dependency missing
-            raise DeviceConnectionError(self.name, "connect", f"ur_rtde is not installed ({exc})") from None
+            raise DeviceConnectionError(self.name, "open", f"ur_rtde is not installed ({exc})") from None
         try:
             self._receive = rtde_receive.RTDEReceiveInterface(self.host, self.frequency, [], False,
                                                               self.upper_range_registers)
@@ -167,7 +148,7 @@ class URRobot:
             self._control = rtde_control.RTDEControlInterface(self.host, self.frequency, flags)
         except RuntimeError as exc:
             self._drop_clients()
-            raise DeviceConnectionError(self.name, "connect", f"ur_rtde could not open {self.host}: {exc}") from None
+            raise DeviceConnectionError(self.name, "open", f"ur_rtde could not open {self.host}: {exc}") from None
         self._broken = None
         self._last_stamp = (-1.0, 0.0)
 
@@ -179,7 +160,7 @@ class URRobot:
                 sock.settimeout(timeout)
                 greeting = sock.recv(256)
                 if not greeting:
-                    raise DeviceConnectionError(self.name, "connect", "the dashboard server closed at once")
+                    raise DeviceConnectionError(self.name, "open", "the dashboard server closed at once")
             with socket.create_connection((self.host, RTDE_PORT), timeout=timeout) as sock:
                 sock.settimeout(timeout)
                 sock.sendall(struct.pack(">HBH", 5, 86, 2))  # request protocol version 2
@@ -187,17 +168,17 @@ class URRobot:
                 while len(reply) < 4:
                     chunk = sock.recv(4 - len(reply))
                     if not chunk:
-                        raise DeviceConnectionError(self.name, "connect", "the RTDE server closed the handshake")
+                        raise DeviceConnectionError(self.name, "open", "the RTDE server closed the handshake")
                     reply += chunk
                 if reply[2] != 86 or reply[3] != 1:
-                    raise DeviceConnectionError(self.name, "connect", "the RTDE server refused protocol version 2")
+                    raise DeviceConnectionError(self.name, "open", "the RTDE server refused protocol version 2")
             socket.create_connection((self.host, SCRIPT_PORT), timeout=timeout).close()
         except TimeoutError:
             raise DeviceTimeout(
-                self.name, "connect", f"{self.host} accepted but did not answer within {timeout} s"
+                self.name, "open", f"{self.host} accepted but did not answer within {timeout} s"
             ) from None
         except OSError as exc:
-            raise DeviceConnectionError(self.name, "connect", f"cannot reach {self.host}: {exc}") from None
+            raise DeviceConnectionError(self.name, "open", f"cannot reach {self.host}: {exc}") from None
 
     def close(self) -> None:
         self._drop_clients()
@@ -220,18 +201,18 @@ class URRobot:
                     pass
 
     def __enter__(self) -> URRobot:
-        self.connect()
+        self.open()
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     # ----------------------------------------------------------------------------- helpers
     def _require(self, operation: str):
         if self._control is None or self._receive is None:
-            raise DeviceConnectionError(self.name, operation, "not connected (call connect() first)")
+            raise DeviceConnectionError(self.name, operation, "not open (call open() first)")
         if self._broken:
-            raise DeviceConnectionError(self.name, operation, f"connection is broken ({self._broken}); reconnect")
+            raise DeviceConnectionError(self.name, operation, f"connection is broken ({self._broken}); open() again")
         if not self._receive.isConnected():
             self._broken = "RTDE data connection lost"
             raise DeviceConnectionError(self.name, operation, "the RTDE data connection is lost")
@@ -476,14 +457,3 @@ def _rotation_angle_between(rotvec_a, rotvec_b) -> float:
 
     relative = matrix(rotvec_a).T @ matrix(rotvec_b)
     return float(np.arccos(np.clip((np.trace(relative) - 1.0) / 2.0, -1.0, 1.0)))
-
-
-def create_ur_robot(config: Mapping[str, Any], *, name: str) -> URRobot:
-    """Build a ``URRobot`` from an adapter config (keys: see ``URRobot``)."""
-    settings = {k: v for k, v in dict(config).items() if k != "adapter"}
-    allowed = {"host", "frequency", "envelope", "connect_timeout", "command_timeout", "move_timeout",
-               "stale_timeout", "upper_range_registers"}
-    unknown = set(settings) - allowed
-    if unknown:
-        raise ValueError(f"robot {name!r} (ur_rtde): unknown setting(s) {sorted(unknown)}; allowed: {sorted(allowed)}")
-    return URRobot(name, **settings)

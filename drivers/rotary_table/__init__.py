@@ -1,16 +1,9 @@
-"""Rotary tables: the ``RotaryTable`` interface and adapters.
+"""Rotary tables: the ``RotaryTable`` interface, the settings, the register map and adapters.
 
-``create(config, name=...)`` picks the adapter from ``config["adapter"]``; the other keys are the
-adapter's settings:
-
-- ``modbus_tcp``: ``host``, ``port`` (502), ``unit`` (1), ``register_map`` (mapping, see
-  ``RegisterMap``), ``timeout`` (0.5 s), ``retries`` (2), ``poll_interval`` (0.01 s).
-- ``modbus_rtu``: ``port`` (serial device path), ``baudrate`` (115200), ``unit``, ``register_map``,
-  ``timeout``, ``retries``, ``poll_interval``.
-- ``gcs_serial``: ``port`` (path or pyserial URL), ``baudrate`` (115200), ``axis`` ("1"), ``timeout``,
-  ``retries``, ``poll_interval``.
-
-The returned table is not connected yet: use it as a context manager or call ``connect()``.
+``create(settings, name=...)`` builds the adapter that ``settings.adapter`` names:
+``modbus_tcp`` / ``modbus_rtu`` (``ModbusTable``, a servo drive described by a ``RegisterMap``) or
+``gcs_serial`` (``GcsTable``, a PI GCS 2.0 controller). The table is not opened yet: call
+``open()`` or use it as a context manager.
 """
 
 from __future__ import annotations
@@ -18,54 +11,55 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
+from drivers._settings import SettingsUnion
 from drivers.rotary_table._gcs import GcsTable
 from drivers.rotary_table._interface import RotaryTable, TableFault, TableState
 from drivers.rotary_table._modbus import ModbusTable
 from drivers.rotary_table._registers import AlarmBits, Opcodes, RegisterMap, StatusBits
+from drivers.rotary_table._settings import (
+    GcsSerialSettings,
+    ModbusRtuSettings,
+    ModbusTcpSettings,
+    RotaryTableSettings,
+)
 
-ADAPTERS = ("modbus_tcp", "modbus_rtu", "gcs_serial")
-_COMMON = {"timeout", "retries", "poll_interval"}
-_SETTINGS = {
-    "modbus_tcp": ({"host"}, {"port", "unit", "register_map"} | _COMMON),
-    "modbus_rtu": ({"port"}, {"baudrate", "unit", "register_map"} | _COMMON),
-    "gcs_serial": ({"port"}, {"baudrate", "axis"} | _COMMON),
-}
+_SETTINGS_UNION: SettingsUnion[RotaryTableSettings] = SettingsUnion(RotaryTableSettings, "rotary_table")
+ADAPTERS = tuple(_SETTINGS_UNION.models)
 
 
-def create(config: Mapping[str, Any], *, name: str = "rotary_table") -> RotaryTable:
-    """Build the rotary-table adapter described by ``config`` (see the module docstring)."""
-    settings = dict(config)
-    adapter = settings.pop("adapter", None)
-    if adapter not in _SETTINGS:
-        raise ValueError(f"{name}: unknown rotary_table adapter {adapter!r}; choose one of {list(ADAPTERS)}")
-    required, optional = _SETTINGS[adapter]
-    missing = required - set(settings)
-    unknown = set(settings) - required - optional
-    if missing or unknown:
-        problems = []
-        if missing:
-            problems.append(f"missing {sorted(missing)}")
-        if unknown:
-            problems.append(f"unknown {sorted(unknown)}")
-        raise ValueError(f"{name}: rotary_table adapter {adapter!r}: {', '.join(problems)}; "
-                         f"allowed settings {sorted(required | optional)}")
-    if "register_map" in settings:
-        settings["register_map"] = RegisterMap.from_config(settings["register_map"])
-    if adapter == "modbus_tcp":
-        return ModbusTable.tcp(name, **settings)
-    if adapter == "modbus_rtu":
-        return ModbusTable.rtu(name, **settings)
-    return GcsTable(name, **settings)
+def create(settings: RotaryTableSettings | Mapping[str, Any], *, name: str = "rotary_table") -> RotaryTable:
+    """The rotary-table adapter for ``settings`` (a model, or a mapping validated as one).
+
+    Parameters
+    ----------
+    settings : RotaryTableSettings or mapping
+        The station file's ``devices.rotary_table`` entry.
+    name : str
+        Device name used in every error.
+
+    Raises
+    ------
+    SettingsError
+        For a mapping that is not valid settings (one line naming the adapter and the setting).
+    """
+    checked = _SETTINGS_UNION.validate(settings, name=name)
+    if isinstance(checked, GcsSerialSettings):
+        return GcsTable(checked, name=name)
+    return ModbusTable(checked, name=name)
 
 
 __all__ = [
     "ADAPTERS",
     "AlarmBits",
+    "GcsSerialSettings",
     "GcsTable",
+    "ModbusRtuSettings",
     "ModbusTable",
+    "ModbusTcpSettings",
     "Opcodes",
     "RegisterMap",
     "RotaryTable",
+    "RotaryTableSettings",
     "StatusBits",
     "TableFault",
     "TableState",

@@ -16,12 +16,14 @@ from __future__ import annotations
 import math
 import re
 import time
+from collections.abc import Callable
 from typing import Any
 
 import serial
 
 from drivers._errors import DeviceConnectionError, DeviceError, DeviceTimeout, MotionRefused, ProtocolError
 from drivers.rotary_table._interface import TableFault, TableState
+from drivers.rotary_table._settings import GcsSerialSettings
 
 PI_ERRORS = {
     1: "parameter syntax error",
@@ -42,39 +44,27 @@ class GcsTable:
 
     Parameters
     ----------
+    settings : GcsSerialSettings
+        Serial port (or pyserial URL), baud rate, axis, answer timeout, retries, poll interval.
     name : str
         Device name for errors.
-    port : str
-        Serial port path (or a pyserial URL such as ``socket://127.0.0.1:50000``).
-    baudrate : int
-    axis : str
-        GCS axis identifier (``"1"``).
-    timeout : float
-        Seconds to wait for one answer.
-    retries : int
-        Extra attempts of a query after a timeout or a garbled answer.
-    poll_interval : float
-        Seconds between ``ONT?`` polls while waiting.
     """
 
-    def __init__(self, name: str, port: str, *, baudrate: int = 115200, axis: str = "1", timeout: float = 0.5,
-                 retries: int = 2, poll_interval: float = 0.01) -> None:
-        if retries < 0:
-            raise ValueError(f"retries must be >= 0, got {retries}")
-        if not re.fullmatch(r"[A-Za-z0-9_]+", str(axis)):
-            raise ValueError(f"axis identifier must be alphanumeric, got {axis!r}")
+    def __init__(self, settings: GcsSerialSettings, *, name: str = "rotary_table") -> None:
         self.name = name
-        self.port = port
-        self.baudrate = int(baudrate)
-        self.axis = str(axis)
-        self.timeout = float(timeout)
-        self.retries = int(retries)
-        self.poll_interval = float(poll_interval)
+        self.settings = settings
+        self.port = settings.port
+        self.baudrate = settings.baudrate
+        self.axis = settings.axis
+        self.timeout = settings.timeout
+        self.retries = settings.retries
+        self.poll_interval = settings.poll_interval
         self._serial: serial.Serial | None = None
         self.identity = ""
 
     # ----------------------------------------------------------------------------- connection
-    def connect(self) -> None:
+    def open(self) -> None:
+        """Open the port, check the GCS version, read the identity and clear a latched error."""
         self.close()
         try:
             self._serial = serial.serial_for_url(self.port, baudrate=self.baudrate, timeout=self.timeout,
@@ -99,16 +89,16 @@ class GcsTable:
                 self._serial = None
 
     def __enter__(self) -> GcsTable:
-        self.connect()
+        self.open()
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     # ----------------------------------------------------------------------------- line I/O
     def _port(self, operation: str) -> serial.Serial:
         if self._serial is None:
-            raise DeviceConnectionError(self.name, operation, "not connected (call connect())")
+            raise DeviceConnectionError(self.name, operation, "not open (call open() first)")
         return self._serial
 
     def _send(self, line: str, operation: str) -> None:
@@ -233,7 +223,7 @@ class GcsTable:
         self._set_speed(speed, operation)
         self._command(f"MVR {self.axis} {math.degrees(delta):.9f}", operation)
 
-    def _wait(self, done, timeout: float, operation: str) -> None:
+    def _wait(self, done: Callable[[], bool], timeout: float, operation: str) -> None:
         deadline = time.monotonic() + timeout
         polls = 0
         while True:

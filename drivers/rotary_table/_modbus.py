@@ -1,7 +1,7 @@
 """``ModbusTable``: a rotary-table servo drive over Modbus TCP or RTU (pymodbus 3.16 sync clients).
 
 Device units (counts, velocity units, opcodes) appear only at the registers, taken from the
-``RegisterMap`` in configuration; the public API is in radians and rad/s.
+``RegisterMap`` in the settings; the public API is in radians and rad/s.
 
 Error handling
 --------------
@@ -21,7 +21,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from typing import Any
 
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
@@ -30,7 +30,7 @@ from pymodbus.pdu import ExceptionResponse
 
 from drivers._errors import DeviceConnectionError, DeviceError, DeviceTimeout, MotionRefused, ProtocolError
 from drivers.rotary_table._interface import TableFault, TableState
-from drivers.rotary_table._registers import RegisterMap
+from drivers.rotary_table._settings import ModbusRtuSettings, ModbusTcpSettings
 
 # pymodbus logs each late or missing reply as a warning of its own; this driver turns the same
 # events into retries or typed errors, so without an application handler they would only reach
@@ -54,60 +54,41 @@ _RETRYABLE_CODES = {5, 6, 10, 11}
 
 
 class ModbusTable:
-    """A rotary table behind a Modbus servo drive.
-
-    Use ``ModbusTable.tcp(...)`` / ``ModbusTable.rtu(...)`` or the ``create`` factory.
+    """A rotary table behind a Modbus servo drive, over TCP or RTU (the settings' adapter decides).
 
     Parameters
     ----------
+    settings : ModbusTcpSettings or ModbusRtuSettings
+        Where the drive is, its unit id, register map, answer timeout, retries and poll interval.
     name : str
         Device name for errors.
-    make_client : callable
-        Returns a fresh pymodbus sync client (called on connect and after a lost connection).
-    endpoint : str
-        Human-readable address for messages.
-    unit : int
-        Modbus device id.
-    register_map : RegisterMap or mapping
-    timeout : float
-        Seconds to wait for one answer.
-    retries : int
-        Extra attempts after a timeout/garbled answer (bounded).
-    poll_interval : float
-        Seconds between status polls while waiting.
     """
 
-    def __init__(self, name: str, make_client: Callable[[Callable[[bool, bytes], bytes]], Any], endpoint: str, *,
-                 unit: int = 1, register_map: RegisterMap | Mapping[str, Any] | None = None,
-                 timeout: float = 0.5, retries: int = 2, poll_interval: float = 0.01) -> None:
-        if retries < 0:
-            raise ValueError(f"retries must be >= 0, got {retries}")
+    def __init__(self, settings: ModbusTcpSettings | ModbusRtuSettings, *, name: str = "rotary_table") -> None:
         self.name = name
-        self.endpoint = endpoint
-        self.unit = int(unit)
-        self.map = RegisterMap.from_config(register_map)
-        self.timeout = float(timeout)
-        self.retries = int(retries)
-        self.poll_interval = float(poll_interval)
-        self._make_client = make_client
-        self._client = None
+        self.settings = settings
+        self.unit = settings.unit
+        self.map = settings.register_map
+        self.timeout = settings.timeout
+        self.retries = settings.retries
+        self.poll_interval = settings.poll_interval
+        if isinstance(settings, ModbusTcpSettings):
+            self.endpoint = f"modbus tcp {settings.host}:{settings.port}"
+        else:
+            self.endpoint = f"modbus rtu {settings.port}"
+        self._client: Any = None  # a pymodbus client (untyped to mypy, see pyproject.toml)
         self._rx_bytes = 0
         self._target: int | None = None  # last commanded position (counts)
 
-    # ----------------------------------------------------------------------------- construction
-    @classmethod
-    def tcp(cls, name: str, host: str, port: int = 502, **kwargs: Any) -> ModbusTable:
-        timeout = float(kwargs.get("timeout", 0.5))
-        return cls(name, lambda trace: ModbusTcpClient(host, port=int(port), timeout=timeout, retries=0,
-                                                       reconnect_delay=0, trace_packet=trace),
-                   f"modbus tcp {host}:{port}", **kwargs)
-
-    @classmethod
-    def rtu(cls, name: str, port: str, baudrate: int = 115200, **kwargs: Any) -> ModbusTable:
-        timeout = float(kwargs.get("timeout", 0.5))
-        return cls(name, lambda trace: ModbusSerialClient(port, baudrate=int(baudrate), timeout=timeout, retries=0,
-                                                          reconnect_delay=0, trace_packet=trace),
-                   f"modbus rtu {port}", **kwargs)
+    def _make_client(self) -> Any:
+        """A fresh pymodbus sync client (on open and after a lost connection); pymodbus does not
+        retry on its own (``retries=0``): this driver's retries are the bounded ones."""
+        settings = self.settings
+        if isinstance(settings, ModbusTcpSettings):
+            return ModbusTcpClient(settings.host, port=settings.port, timeout=settings.timeout, retries=0,
+                                   reconnect_delay=0, trace_packet=self._trace)
+        return ModbusSerialClient(settings.port, baudrate=settings.baudrate, timeout=settings.timeout, retries=0,
+                                  reconnect_delay=0, trace_packet=self._trace)
 
     # ----------------------------------------------------------------------------- connection
     def _trace(self, sending: bool, data: bytes) -> bytes:
@@ -115,17 +96,18 @@ class ModbusTable:
             self._rx_bytes = max(self._rx_bytes, len(data))
         return data
 
-    def connect(self) -> None:
+    def open(self) -> None:
+        """Connect and read the status register (proves the drive answers with this unit id and map)."""
         self.close()
-        client = self._make_client(self._trace)
+        client = self._make_client()
         try:
             ok = client.connect()
         except Exception as exc:  # pyserial / socket errors at open
             client.close()
-            raise DeviceConnectionError(self.name, f"connect ({self.endpoint})", str(exc)) from None
+            raise DeviceConnectionError(self.name, f"open ({self.endpoint})", str(exc)) from None
         if not ok:
             client.close()
-            raise DeviceConnectionError(self.name, f"connect ({self.endpoint})", "the drive cannot be reached")
+            raise DeviceConnectionError(self.name, f"open ({self.endpoint})", "the drive cannot be reached")
         self._client = client
         try:
             self._read(self.map.status, 1)  # proves the drive answers with this unit id and map
@@ -139,15 +121,15 @@ class ModbusTable:
             self._client = None
 
     def __enter__(self) -> ModbusTable:
-        self.connect()
+        self.open()
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     def _flush(self) -> None:
         """Throw away stale input (a late answer to an earlier request)."""
-        socket = getattr(self._client, "socket", None)
+        socket: Any = getattr(self._client, "socket", None)  # a socket (TCP) or a serial.Serial (RTU)
         try:
             if hasattr(socket, "reset_input_buffer"):
                 socket.reset_input_buffer()
@@ -172,7 +154,7 @@ class ModbusTable:
         for attempt in range(self.retries + 1):
             if self._client is None:
                 try:
-                    self.connect_quietly()
+                    self._reconnect()
                 except DeviceConnectionError as exc:
                     last = exc
                     time.sleep(min(0.1, self.timeout))
@@ -215,9 +197,9 @@ class ModbusTable:
         assert last is not None
         raise last
 
-    def connect_quietly(self) -> None:
+    def _reconnect(self) -> None:
         """Reconnect after a lost connection (no status read)."""
-        client = self._make_client(self._trace)
+        client = self._make_client()
         if not client.connect():
             client.close()
             raise DeviceConnectionError(self.name, f"reconnect ({self.endpoint})", "the drive cannot be reached")
