@@ -135,7 +135,6 @@ class FakeRobot:
     def open(self) -> None:
         self.connected = True
 
-    connect = open  # StationRuntime on main still opens robots with connect(); goes with issue 11's drivers part
 
     def close(self) -> None:
         self.connected = False
@@ -209,7 +208,6 @@ class FakeTable:
     def open(self) -> None:
         pass
 
-    connect = open  # StationRuntime on main still opens tables with connect(); goes with issue 11's drivers part
 
     def close(self) -> None:
         pass
