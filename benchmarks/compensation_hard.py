@@ -71,7 +71,7 @@ def run(campaigns: list[int], hysteresis: bool, extra_methods: dict, withheld: b
             for name, compensator in methods.items():
                 models[name] = compensator.fit(data)
             if withheld:  # the same data with the approach directions withheld from the compensators
-                blind = CalibrationData(component, data.measured, data.reference, data.groups, data.points)
+                blind = CalibrationData(component, data.measured, data.reference, data.group, data.point)
                 models["kept, directions withheld"] = calibrate(blind, seed=seed).models[component]
             assert record.evaluation is not None
             kept = record.evaluation.row(component, record.method_for(component))

@@ -157,40 +157,42 @@ class AlignedPoints:
     noise_sigma: float | None
 
 
-def _direction_means(x: np.ndarray, aligned: np.ndarray, point: np.ndarray, direction: np.ndarray,
-                     hysteresis: SplineCurve | PolynomialCurve | None
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Per point: mean position, mid-way error and its weight, and half the direction difference
-    (NaN where a point was approached from one side only)."""
-    labels = np.unique(point)
-    xm, mid, weight, half = (np.empty(labels.size) for _ in range(4))
-    for i, label in enumerate(labels):
+def _half_differences(x: np.ndarray, error: np.ndarray, group: np.ndarray, point: np.ndarray,
+                      direction: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Half the difference of the two directions' mean errors, per point, from within-group pairs only
+    (a group's offset cancels in its own difference), pooled over groups with inverse-variance weights.
+
+    Returns
+    -------
+    x_mean, half, weight : per point that some group approached from both sides, sorted by x
+    """
+    xs, halves, weights = [], [], []
+    for label in np.unique(point):
         at = point == label
-        xm[i] = x[at].mean()
-        up, down = at & (direction == 1), at & (direction == -1)
-        n_up, n_down = int(up.sum()), int(down.sum())
-        if n_up and n_down:
-            mid[i] = 0.5 * (aligned[up].mean() + aligned[down].mean())
-            half[i] = 0.5 * (aligned[up].mean() - aligned[down].mean())
-            weight[i] = 4.0 / (1.0 / n_up + 1.0 / n_down)
-        else:
-            d = 1 if n_up else -1
-            known = 0.0 if hysteresis is None else float(hysteresis.predict(np.array([xm[i]]))[0])
-            mid[i], half[i], weight[i] = aligned[at].mean() - d * known, np.nan, float(at.sum())
-    order = np.argsort(xm)
-    return xm[order], mid[order], weight[order], half[order]
+        sums = np.zeros(2)
+        for g in np.unique(group[at]):
+            cell = at & (group == g)
+            up, down = cell & (direction == 1), cell & (direction == -1)
+            if up.any() and down.any():
+                w = 4.0 / (1.0 / up.sum() + 1.0 / down.sum())
+                sums += (w * 0.5 * (error[up].mean() - error[down].mean()), w)
+        if sums[1] > 0:
+            xs.append(x[at].mean())
+            halves.append(sums[0] / sums[1])
+            weights.append(sums[1])
+    order = np.argsort(xs)
+    return np.asarray(xs)[order], np.asarray(halves)[order], np.asarray(weights)[order]
 
 
 def _hysteresis_curve(x: np.ndarray, half: np.ndarray, weight: np.ndarray) -> SplineCurve | PolynomialCurve:
-    both = np.isfinite(half)
-    if both.sum() >= 3:
-        return fit_spline_curve(x[both], half[both], weight[both])
-    value = float(np.average(half[both], weights=weight[both]))
-    return PolynomialCurve(float(x.mean()), float(np.ptp(x)) or 1.0, np.array([value]))
+    if x.size >= 3:
+        return fit_spline_curve(x, half, weight)
+    value = float(np.average(half, weights=weight))
+    return PolynomialCurve(float(x.mean()), 1.0, np.array([value]))
 
 
 def aligned_points(data: CalibrationData, align: bool = True) -> AlignedPoints:
-    """Group alignment (paper step 3) and point means (step 4), direction-aware.
+    """Hysteresis (when bidirectional), group alignment (paper step 3) and point means (step 4).
 
     Parameters
     ----------
@@ -200,30 +202,29 @@ def aligned_points(data: CalibrationData, align: bool = True) -> AlignedPoints:
     Returns
     -------
     AlignedPoints
+        Point means of the error with each observation's hysteresis share d·h(x) removed (so
+        mid-way between the directions) and its group's offset added.
+
+    Notes
+    -----
+    The hysteresis comes from within-group differences only: a group's offset cancels there, so
+    offsets and hysteresis cannot bias each other. A calibration whose groups each approach from
+    one direction only (but not all the same) cannot tell them apart and is refused.
     """
-    x, e, g, p = data.measured, data.error, data.groups, data.points
+    x, e, g, p = data.measured, data.error, data.group, data.point
     if data.n_points < MIN_POINTS:
         raise ValueError(f"{data.component}: need at least {MIN_POINTS} distinct calibration points, "
                          f"got {data.n_points}")
-    direction = data.direction
-    bidirectional = direction is not None and data.bidirectional
-    if bidirectional and direction is not None:
-        one_sided = [grp for grp in np.unique(g) if np.unique(direction[g == grp]).size < 2]
-        if align and len(one_sided) == np.unique(g).size > 1:
+    hysteresis: SplineCurve | PolynomialCurve | None = None
+    if data.direction is not None and data.bidirectional:
+        hx, half, hw = _half_differences(x, e, g, p, data.direction)
+        if hx.size == 0:
             raise ValueError(f"{data.component}: every group approaches from one direction only, so group offsets "
                              "and hysteresis cannot be told apart; approach from both directions within a group")
-    hysteresis: SplineCurve | PolynomialCurve | None = None
-    for _ in range(2 if bidirectional else 1):
-        known = np.zeros_like(e)
-        if hysteresis is not None and direction is not None:
-            known = direction * hysteresis.predict(x)
-        alignment = align_groups(x, e - known, g, p) if align else GroupAlignment.identity(g)
-        aligned = alignment.apply(e, g)
-        if bidirectional and direction is not None:
-            xm, em, wm, half = _direction_means(x, aligned, p, direction, hysteresis)
-            hysteresis = _hysteresis_curve(xm, half, wm)
-        else:
-            xm, em, wm, _ = point_means(x, aligned, p)
+        hysteresis = _hysteresis_curve(hx, half, hw)
+        e = e - data.direction * hysteresis.predict(x)
+    alignment = align_groups(x, e, g, p) if align else GroupAlignment.identity(g)
+    xm, em, wm, _ = point_means(x, alignment.apply(e, g), p)
     try:
         floor: float | None = data_noise_floor(data)
     except ValueError:
@@ -351,15 +352,15 @@ class CsfPpsoEsnCompensator(Compensator):
 
     def _fit_curve(self, x: np.ndarray, y: np.ndarray, w: np.ndarray, noise_sigma: float | None
                    ) -> tuple[Curve, dict]:
-        curve, front, chosen = tune_csf_esn(x, y, w, seed=self.seed, n_particles=self.n_particles,
-                                            n_iterations=self.n_iterations, archive_size=self.archive_size,
-                                            selection=self.selection)
+        tuning = tune_csf_esn(x, y, w, seed=self.seed, n_particles=self.n_particles, n_iterations=self.n_iterations,
+                              archive_size=self.archive_size, selection=self.selection)
+        curve = tuning.curve
         details = {
             "hyperparameters": curve.hyper.to_dict(),
             "selection": self.selection,
-            "pareto_front_si": (front.objectives * curve.y_scale).tolist(),
-            "chosen": chosen,
-            "ppso_evaluations": int(front.n_evaluations),
+            "chosen": {"train_rms": tuning.train_rms, "heldout_rms": tuning.heldout_rms, "effective_dof": tuning.dof},
+            "pareto_front_si": (tuning.front.objectives * curve.y_scale).tolist(),
+            "ppso_evaluations": int(tuning.front.n_evaluations),
         }
         return curve, details
 

@@ -9,7 +9,7 @@ measured − reference; nothing in this package takes an error array from the ca
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -82,10 +82,10 @@ class CalibrationData:
         refused (that is what passing the error as the reference looks like).
     group : (n,) int array, optional
         Calibration group (each started from a different initial pose; paper §3.4 step 1).
-        Default: one group.
+        Default (None or empty): one group.
     point : (n,) int array, optional
         Calibration point (the commanded position); repeats share it across groups and
-        directions. Default: inferred by clustering the measured values (``infer_points``).
+        directions. Default (None or empty): inferred by clustering the measured values (``infer_points``).
     direction : (n,) array of ±1, optional
         Approach direction of each observation (+1: the point was approached from below, −1:
         from above), as in a bidirectional calibration (ISO 230-2). ``None``: not recorded
@@ -95,8 +95,8 @@ class CalibrationData:
     component: str
     measured: np.ndarray
     reference: np.ndarray
-    group: np.ndarray | None = None
-    point: np.ndarray | None = None
+    group: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    point: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
     direction: np.ndarray | None = None
 
     def __post_init__(self) -> None:
@@ -105,10 +105,11 @@ class CalibrationData:
         measured = np.asarray(self.measured, dtype=float).ravel()
         reference = np.asarray(self.reference, dtype=float).ravel()
         n = measured.size
-        group = np.zeros(n, int) if self.group is None else np.asarray(self.group).ravel()
+        given = lambda labels: labels is not None and np.size(labels) > 0  # None or empty: not given
+        group = np.asarray(self.group).ravel() if given(self.group) else np.zeros(n, int)
         if n == 0 or not (np.all(np.isfinite(measured)) and np.all(np.isfinite(reference))):
             raise ValueError(f"{where}: measured and reference must be finite and non-empty")
-        point = infer_points(measured) if self.point is None else np.asarray(self.point).ravel()
+        point = np.asarray(self.point).ravel() if given(self.point) else infer_points(measured)
         direction = check_direction(self.direction, where)
         sizes = [reference.size, group.size, point.size] + ([] if direction is None else [direction.size])
         if any(s != n for s in sizes):
@@ -124,19 +125,6 @@ class CalibrationData:
         object.__setattr__(self, "group", group.astype(int))
         object.__setattr__(self, "point", point.astype(int))
         object.__setattr__(self, "direction", direction)
-
-    # The attributes are arrays after __post_init__; these give them typed.
-    @property
-    def groups(self) -> np.ndarray:
-        """Group label per observation (int array)."""
-        assert self.group is not None
-        return self.group
-
-    @property
-    def points(self) -> np.ndarray:
-        """Calibration point label per observation (int array)."""
-        assert self.point is not None
-        return self.point
 
     @property
     def error(self) -> np.ndarray:
@@ -154,17 +142,17 @@ class CalibrationData:
 
     @property
     def n_points(self) -> int:
-        return int(np.unique(self.points).size)
+        return int(np.unique(self.point).size)
 
     def subset(self, mask: np.ndarray) -> CalibrationData:
         """The observations selected by a boolean mask (or index array)."""
-        return CalibrationData(self.component, self.measured[mask], self.reference[mask], self.groups[mask],
-                               self.points[mask], None if self.direction is None else self.direction[mask])
+        return CalibrationData(self.component, self.measured[mask], self.reference[mask], self.group[mask],
+                               self.point[mask], None if self.direction is None else self.direction[mask])
 
     def point_order(self) -> np.ndarray:
         """Point labels sorted by their mean measured value."""
-        labels = np.unique(self.points)
-        centers = np.array([self.measured[self.points == p].mean() for p in labels])
+        labels = np.unique(self.point)
+        centers = np.array([self.measured[self.point == p].mean() for p in labels])
         return labels[np.argsort(centers)]
 
     def summary(self) -> dict:
@@ -172,13 +160,13 @@ class CalibrationData:
         import hashlib
 
         digest = hashlib.sha256()
-        for array in (self.measured, self.reference, self.groups, self.points,
+        for array in (self.measured, self.reference, self.group, self.point,
                       np.zeros(0) if self.direction is None else self.direction):
             digest.update(np.ascontiguousarray(array).tobytes())
         return {
             "n_observations": int(self.measured.size),
             "n_points": self.n_points,
-            "n_groups": int(np.unique(self.groups).size),
+            "n_groups": int(np.unique(self.group).size),
             "directions": list(self.directions),
             "measured_range": [float(self.measured.min()), float(self.measured.max())],
             "data_sha256": digest.hexdigest(),
@@ -262,7 +250,7 @@ def noise_floor(error: np.ndarray, *labels: np.ndarray) -> float:
 def data_noise_floor(data: CalibrationData) -> float:
     """``noise_floor`` of a calibration, cells = (group, point, direction)."""
     direction = np.zeros(data.measured.size, int) if data.direction is None else data.direction
-    return noise_floor(data.error, data.groups, data.points, direction)
+    return noise_floor(data.error, data.group, data.point, direction)
 
 
 def as_data_mapping(calibration_data: CalibrationData | Mapping[str, CalibrationData] | Iterable[CalibrationData]

@@ -23,7 +23,6 @@ front is made in those units (``SELECTIONS``), never after normalising each obje
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -35,12 +34,14 @@ from instrument.compensation._spline import PartialSpline, curvature_column, nat
 RESERVOIR_STEPS = 25
 CONNECTIONS_PER_NEURON = 10
 
-#: How a member of the Pareto front is chosen:
-#: "one_se": the smoothest member (highest training RMS) whose held-out RMS is within one standard
-#:     error of the lowest (Breiman's one-standard-error rule; the standard error comes from the
-#:     scatter of the per-point squared held-out residuals);
-#: "ideal_point": nearest to (min f₁, min f₂) in the objectives' own unit;
-#: "min_heldout": lowest held-out RMS;
+#: How the model is chosen from what the swarm found:
+#: "one_se": Breiman's one-standard-error rule over every model the swarm evaluated: the one with the
+#:     fewest effective degrees of freedom (trace of the hat matrix) whose held-out RMS is within one
+#:     standard error of the lowest (the standard error from the scatter of that model's per-point
+#:     squared held-out residuals). On the (training, held-out) front itself the rule is void: a
+#:     smoother model has a higher training error, so it is dominated unless it also predicts better;
+#: "ideal_point": the front member nearest to (min f₁, min f₂) in the objectives' own unit;
+#: "min_heldout": the front member with the lowest held-out RMS;
 #: "knee": the paper-era knee (farthest from the chord after normalising both objectives to [0, 1]);
 #:     kept for comparison — unsound here because f₁ barely varies, so normalising blows it up.
 SELECTIONS = ("one_se", "ideal_point", "min_heldout", "knee")
@@ -294,35 +295,70 @@ def _interior(n: int) -> np.ndarray:
     return mask
 
 
-def select(front: ParetoResult, selection: str, heldout_sq: Callable[[np.ndarray], np.ndarray]) -> int:
-    """Index of the chosen member of a two-objective front of RMS values (see ``SELECTIONS``).
+@dataclass(frozen=True)
+class SwarmLog:
+    """Every model the swarm evaluated.
+
+    Attributes
+    ----------
+    positions : (k, 6) PPSO positions (see ``decode``)
+    train, heldout : (k,) training and leave-one-point-out RMS (units of the error's spread)
+    dof : (k,) effective degrees of freedom (trace of the hat matrix)
+    squares : (k, m) squared leave-one-point-out residuals of the m interior points
+    """
+
+    positions: np.ndarray
+    train: np.ndarray
+    heldout: np.ndarray
+    dof: np.ndarray
+    squares: np.ndarray
+
+
+def select(front: ParetoResult, log: SwarmLog, selection: str) -> np.ndarray:
+    """Position of the chosen model (see ``SELECTIONS``).
 
     Parameters
     ----------
     front : ParetoResult
         f₁ = training RMS, f₂ = held-out RMS, in one unit.
+    log : SwarmLog of every evaluation (used by "one_se")
     selection : str
-    heldout_sq : callable(position) → per-point squared held-out residuals (for "one_se")
+
+    Returns
+    -------
+    (6,) position
     """
     f = front.objectives
     if selection == "knee":
-        return front.knee_index()
+        return front.positions[front.knee_index()]
     if selection == "min_heldout":
-        return int(np.argmin(f[:, 1]))
+        return front.positions[int(np.argmin(f[:, 1]))]
     if selection == "ideal_point":
-        return front.ideal_point_index()
+        return front.positions[front.ideal_point_index()]
     if selection == "one_se":
-        best = int(np.argmin(f[:, 1]))
-        squares = heldout_sq(front.positions[best])
-        se = float(np.std(squares, ddof=1) / np.sqrt(squares.size)) / (2.0 * max(f[best, 1], 1e-300))
-        within = np.flatnonzero(f[:, 1] <= f[best, 1] + se)
-        return int(within[np.argmax(f[within, 0])])
+        best = int(np.argmin(log.heldout))
+        squares = log.squares[best]
+        se = float(np.std(squares, ddof=1) / np.sqrt(squares.size)) / (2.0 * max(float(log.heldout[best]), 1e-300))
+        within = np.flatnonzero(log.heldout <= log.heldout[best] + se)
+        return log.positions[within[np.lexsort((log.heldout[within], log.dof[within]))[0]]]
     raise ValueError(f"selection must be one of {SELECTIONS}, got {selection!r}")
 
 
+@dataclass(frozen=True)
+class Tuning:
+    """What ``tune_csf_esn`` found: the curve, the Pareto front, the log of every evaluation and the
+    chosen model's figures (training and held-out RMS in SI units, effective dof)."""
+
+    curve: CsfEsnCurve
+    front: ParetoResult
+    log: SwarmLog
+    train_rms: float
+    heldout_rms: float
+    dof: float
+
+
 def tune_csf_esn(x: np.ndarray, y: np.ndarray, w: np.ndarray, *, seed: int = 0, n_particles: int = 12,
-                 n_iterations: int = 15, archive_size: int = 30, selection: str = "one_se"
-                 ) -> tuple[CsfEsnCurve, ParetoResult, int]:
+                 n_iterations: int = 15, archive_size: int = 30, selection: str = "one_se") -> Tuning:
     """PPSO search of the CSF-ESN hyper-parameters on aligned point means, then the chosen fit.
 
     Parameters
@@ -334,36 +370,33 @@ def tune_csf_esn(x: np.ndarray, y: np.ndarray, w: np.ndarray, *, seed: int = 0, 
 
     Returns
     -------
-    curve : CsfEsnCurve
-    front : ParetoResult (objectives in units of the error's spread, ``curve.y_scale``)
-    chosen : index of the chosen member in ``front``
+    Tuning
 
     Notes
     -----
     The swarm starts with one particle at the CSF alone (λ by GCV, ridge at its upper bound, so
-    the ESN is all but switched off): the front always holds a member at least as good as the CSF.
+    the ESN is all but switched off): the search always holds a model as good as the CSF.
     """
     if selection not in SELECTIONS:
         raise ValueError(f"selection must be one of {SELECTIONS}, got {selection!r}")
     problem = CsfEsnProblem.from_points(x, y, w, seed)
     interior = _interior(problem.u.size)
     unit_reservoirs: dict[int, tuple[Reservoir, np.ndarray]] = {}
+    records: list[tuple[np.ndarray, float, float, float, np.ndarray]] = []
 
-    def loo(v: np.ndarray) -> tuple[JointFit, np.ndarray]:
+    def objectives(v: np.ndarray) -> tuple[float, float]:
         hyper = decode(v)
         if hyper.reservoir_size not in unit_reservoirs:
             r = problem.reservoir(hyper.reservoir_size)
             unit_reservoirs[hyper.reservoir_size] = (r, r.dense() / 0.5)
         r, unit = unit_reservoirs[hyper.reservoir_size]
         fitted = problem.fit(hyper, r, unit, parameters=False)
-        return fitted, fitted.loo_residuals(problem.y)
-
-    def objectives(v: np.ndarray) -> tuple[float, float]:
-        fitted, residuals = loo(v)
+        squares = fitted.loo_residuals(problem.y)[interior] ** 2
         train = problem.y - fitted.hat @ problem.y
-        w = problem.w
-        return (float(np.sqrt(np.sum(w * train**2) / np.sum(w))),
-                float(np.sqrt(np.mean(residuals[interior] ** 2))))
+        train_rms = float(np.sqrt(np.sum(problem.w * train**2) / np.sum(problem.w)))
+        heldout_rms = float(np.sqrt(np.mean(squares)))
+        records.append((np.array(v, dtype=float), train_rms, heldout_rms, float(np.trace(fitted.hat)), squares))
+        return train_rms, heldout_rms
 
     csf_lam = smooth(problem.u, problem.y, problem.w, "gcv", end_curvature=True).lam
     log_lam = float(np.clip(np.log10(csf_lam), SEARCH_LOWER[5], SEARCH_UPPER[5]))
@@ -371,5 +404,11 @@ def tune_csf_esn(x: np.ndarray, y: np.ndarray, w: np.ndarray, *, seed: int = 0, 
     front = ppso_minimize(objectives, SEARCH_LOWER, SEARCH_UPPER, n_particles=n_particles, n_iterations=n_iterations,
                           archive_size=archive_size, integer=(True, False, False, False, False, False), seed=seed,
                           initial=start)
-    chosen = select(front, selection, lambda v: loo(v)[1][interior] ** 2)
-    return problem.curve(decode(front.positions[chosen])), front, chosen
+    ok = [r for r in records if np.isfinite(r[1]) and np.isfinite(r[2])]
+    log = SwarmLog(np.array([r[0] for r in ok]), np.array([r[1] for r in ok]), np.array([r[2] for r in ok]),
+                   np.array([r[3] for r in ok]), np.array([r[4] for r in ok]))
+    position = select(front, log, selection)
+    hyper = decode(position)
+    at = int(np.flatnonzero(np.all(log.positions == position, axis=1))[0])
+    return Tuning(problem.curve(hyper), front, log, float(log.train[at] * problem.y_scale),
+                  float(log.heldout[at] * problem.y_scale), float(log.dof[at]))

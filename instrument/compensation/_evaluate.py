@@ -153,9 +153,9 @@ def leave_one_point_out_residuals(compensator: Compensator, data: CalibrationDat
     end_points = {ordered[1], ordered[-2]}
     residuals, ends = [], []
     for held in ordered[1:-1]:
-        test = data.points == held
+        test = data.point == held
         model = compensator.fit(data.subset(~test))
-        offsets = np.array([model.group_offset(g) for g in data.groups[test]])
+        offsets = np.array([model.group_offset(g) for g in data.group[test]])
         residuals.append(data.error[test] + offsets - model.predict(data.measured[test], _direction(data, test)))
         ends.append(np.full(int(test.sum()), held in end_points))
     return np.concatenate(residuals), np.concatenate(ends)
@@ -167,12 +167,12 @@ def leave_one_group_out_residuals(compensator: Compensator, data: CalibrationDat
     ordered = data.point_order()
     end_points = [ordered[0], ordered[1], ordered[-2], ordered[-1]]
     residuals, ends = [], []
-    for g in np.unique(data.groups):
-        test = data.groups == g
+    for g in np.unique(data.group):
+        test = data.group == g
         model = compensator.fit(data.subset(~test))
         r = data.error[test] - model.predict(data.measured[test], _direction(data, test))
         residuals.append(r - r.mean())
-        ends.append(np.isin(data.points[test], end_points))
+        ends.append(np.isin(data.point[test], end_points))
     return np.concatenate(residuals), np.concatenate(ends)
 
 
@@ -205,7 +205,7 @@ def evaluate(compensators: Mapping[str, Compensator] | Iterable[Compensator],
         for name, compensator in named.items():
             for scheme in schemes:
                 if scheme == LOGO:
-                    if np.unique(data.groups).size < 2:
+                    if np.unique(data.group).size < 2:
                         continue
                     residual, ends = leave_one_group_out_residuals(compensator, data)
                 else:

@@ -234,7 +234,7 @@ class SplineCurve:
 
 
 def fit_spline_curve(x: np.ndarray, y: np.ndarray, w: np.ndarray | None = None, *, criterion: str = "gcv",
-                     trend_degree: int = 0, end_curvature: bool = False) -> SplineCurve:
+                     trend_degree: int = 0, end_curvature: bool = False, lam: float | None = None) -> SplineCurve:
     """Fit the CSF curve to point means.
 
     Parameters
@@ -244,6 +244,7 @@ def fit_spline_curve(x: np.ndarray, y: np.ndarray, w: np.ndarray | None = None, 
     criterion : "gcv" or "loo" (see ``smooth``)
     trend_degree : polynomial fitted first by weighted least squares (0: none)
     end_curvature : let the ends bend (unpenalised u² term)
+    lam : fixed smoothing λ (for u = x scaled to [−1, 1] and weights of mean 1); None searches it
 
     Returns
     -------
@@ -261,5 +262,5 @@ def fit_spline_curve(x: np.ndarray, y: np.ndarray, w: np.ndarray | None = None, 
     trend = np.zeros(1)
     if trend_degree > 0:
         trend = np.polyfit(u, y, trend_degree, w=np.sqrt(w))
-    fit = smooth(u, y - np.polyval(trend, u), w, criterion, end_curvature=end_curvature)
+    fit = smooth(u, y - np.polyval(trend, u), w, criterion, lam=lam, end_curvature=end_curvature)
     return SplineCurve(center, half_span, trend, u, fit.fitted, fit.lam, fit.effective_dof, fit.curvature)
