@@ -137,6 +137,8 @@ def test_unknown_components_and_bad_values_are_refused(record):
         record.correct("x", np.nan)
     with pytest.raises(ValueError, match="direction must be"):
         record.correct("x", 0.01, direction=2)
+    with pytest.raises(ValueError, match="give one direction or one per value"):
+        record.correct("x", [0.01, 0.02, 0.03], direction=[1, -1])
 
 
 def test_a_format_1_record_still_loads_and_corrects_as_before():

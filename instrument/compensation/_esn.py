@@ -17,8 +17,9 @@ For fixed hyper-parameters the fit is a linear smoother, fitted = A·y, so the l
 residuals are exact in closed form: r_i / (1 − A_ii) (removing a point's weight equals refitting
 without it: the natural spline through the other points is also the optimum with the knot kept).
 PPSO searches (size, ρ, leak, s_in, μ, λ) on f₁ = training RMS and f₂ = leave-one-point-out RMS
-over the interior points; both are RMS of the same quantity in the same unit, so the choice on the
-front is made in those units (``SELECTIONS``), never after normalising each objective to [0, 1].
+over the interior points; both are RMS of the same quantity in the same unit, so the model is
+chosen in that unit (``SELECTIONS``; default: the one-standard-error rule over every model the
+swarm evaluated), never after normalising each objective to [0, 1].
 """
 
 from __future__ import annotations
@@ -43,7 +44,9 @@ CONNECTIONS_PER_NEURON = 10
 #: "ideal_point": the front member nearest to (min f₁, min f₂) in the objectives' own unit;
 #: "min_heldout": the front member with the lowest held-out RMS;
 #: "knee": the paper-era knee (farthest from the chord after normalising both objectives to [0, 1]);
-#:     kept for comparison — unsound here because f₁ barely varies, so normalising blows it up.
+#:     kept for comparison. Unsound in principle (normalising weighs a training RMS that barely
+#:     varies like a held-out RMS spanning decades); on the paper-era ESN alone it picked
+#:     over-fitted networks, on the joint model it happens to land near the others.
 SELECTIONS = ("one_se", "ideal_point", "min_heldout", "knee")
 
 
@@ -167,7 +170,8 @@ def joint_fit(spline: PartialSpline, y: np.ndarray, phi: np.ndarray, hyper: EsnH
     y : (n,) values
     phi : (n, m) ESN features at the points
     hyper : hyper-parameters (``smoothing`` λ and ``ridge`` μ are used here)
-    parameters : also compute the spline values, curvature and readout weights (else only the hat)
+    parameters : also compute the spline values, curvature and readout weights (False: only the hat
+        matrix is meaningful, the rest are zeros — what the swarm's objectives need)
     """
     n = y.size
     spline_hat, spline_map = spline.smoother(hyper.smoothing)

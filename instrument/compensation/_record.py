@@ -353,10 +353,16 @@ class CalibrationRecord:
         if not np.all(np.isfinite(x)):
             raise ValueError(f"{component}: measured values must be finite")
         d = check_direction(direction, f"{component}: correction")
+        if d is not None:
+            try:
+                d = np.broadcast_to(d, x.shape)
+            except ValueError:
+                raise ValueError(f"{component}: {d.size} approach direction(s) for measured values of shape "
+                                 f"{x.shape}; give one direction or one per value") from None
         lo, hi = self.validity[component]
-        error = model.predict(x, None if d is None else np.broadcast_to(d, x.shape))
+        error = model.predict(x, d)
         covered = model.directions
-        not_covered = np.zeros(x.shape, bool) if d is None else ~np.isin(np.broadcast_to(d, x.shape), covered)
+        not_covered = np.zeros(x.shape, bool) if d is None else ~np.isin(d, covered)
         return CorrectionResult(component, x, error, x - error, (x < lo) | (x > hi), not_covered, (lo, hi), covered)
 
     def correct(self, component: str, measured: np.ndarray | float,
