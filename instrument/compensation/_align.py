@@ -131,9 +131,14 @@ def align_groups(
 
     Parameters
     ----------
-    measured, error, group, point : (n,) observation arrays
+    measured, error, group, point : (n,) observation arrays (error = measured − reference, derived
+        by the caller: ``aligned_points(data)`` is the entry point that takes CalibrationData)
     window_fraction : fraction of the calibration points spanned by the stable interval
     refine : re-estimate the offsets once against the pooled curve of the aligned data
+
+    Returns
+    -------
+    GroupAlignment
     """
     x, e = np.asarray(measured, float), np.asarray(error, float)
     group, point = np.asarray(group, int), np.asarray(point, int)

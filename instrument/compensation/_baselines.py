@@ -120,6 +120,15 @@ def fit_gaussian_process(x: np.ndarray, y: np.ndarray, w: np.ndarray, *, point_v
     alone between points. The noise variance of a point mean is ``point_variance / w`` with
     ``point_variance`` (variance of one observation) fitted within [¼, 4]× the given value when
     given, else free.
+
+    Parameters
+    ----------
+    x, y, w : (n,) point means and weights (repeat counts)
+    point_variance : variance of one observation (the noise floor squared), or None
+
+    Returns
+    -------
+    GaussianProcessCurve
     """
     x, y, w = (np.asarray(v, float) for v in (x, y, w))
     order = np.argsort(x)
