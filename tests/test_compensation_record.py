@@ -1,19 +1,24 @@
-"""CalibrationRecord: round trip, every corruption case, and applying corrections."""
+"""CalibrationRecord: calibrate(), round trip, format 1 still loading, corruption, and applying corrections."""
 
 import json
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from instrument.compensation import (
+    COMPONENTS,
     FORMAT_VERSION,
+    LOPO,
+    CalibrationData,
     CalibrationRecord,
     CalibrationRecordError,
+    CorrectionResult,
     CsfPpsoEsnCompensator,
     GaussianProcessCompensator,
     NoCompensation,
-    OutOfCalibrationRangeWarning,
+    PoseCorrection,
     Provenance,
     SmoothingSplineCompensator,
     calibrate,
@@ -27,6 +32,7 @@ PROVENANCE = Provenance(
     date="2024-05-02",
     temperature_c=20.4,
 )
+FORMAT_1 = json.loads((Path(__file__).parent / "data" / "compensation_record_v1.json").read_text(encoding="utf-8"))
 
 
 @pytest.fixture(scope="module")
@@ -37,7 +43,7 @@ def scenario():
 @pytest.fixture(scope="module")
 def record(scenario):
     methods = {
-        "csf-ppso-esn": CsfPpsoEsnCompensator(n_particles=8, n_iterations=6),
+        "csf-ppso-esn": CsfPpsoEsnCompensator(n_particles=6, n_iterations=4),
         "csf": SmoothingSplineCompensator(),
         "gaussian_process": GaussianProcessCompensator(),
         "none": NoCompensation(),
@@ -45,61 +51,117 @@ def record(scenario):
     return calibrate({c: scenario.data[c] for c in ("x", "a")}, methods, PROVENANCE)
 
 
-def test_record_round_trip_keeps_everything(record, scenario):
+def test_calibrate_needs_nothing_but_the_data(scenario):
+    rec = calibrate(scenario.data["y"])
+    assert rec.components == ("y",) and rec.provenance == Provenance()
+    assert rec.method_for("y") == rec.evaluation.best("y")
+    assert {r.method for r in rec.evaluation.rows} == {"csf-ppso-esn", "csf", "polynomial", "gaussian_process", "none"}
+    data = scenario.data["y"]
+    residual = rec.correct("y", data.measured).corrected - data.reference  # each group keeps its offset
+    residual += rec.models["y"].alignment.offsets_of(data.group)
+    assert np.std(residual) < 2 * scenario.noise_sigma["y"] and np.std(data.error) > 20 * scenario.noise_sigma["y"]
+
+
+def test_record_round_trip_keeps_everything(record):
     text = record.to_json()
     again = CalibrationRecord.from_json(text)
-    assert again.to_json() == text and again.content_id == record.content_id
+    assert again.to_json() == text and again.content_id == record.content_id == again.source_id
     assert again.provenance == PROVENANCE and again.method == "per-component best"
-    assert again.validity == record.validity
-    assert again.evaluation.format() == record.evaluation.format()
+    assert again.validity == record.validity and again.evaluation == record.evaluation
     probe = np.linspace(0.0, 0.07, 31)
-    np.testing.assert_array_equal(again.correct("x", probe)[0], record.correct("x", probe)[0])
+    np.testing.assert_array_equal(again.correct("x", probe).corrected, record.correct("x", probe).corrected)
     payload = json.loads(text)
-    assert payload["format_version"] == FORMAT_VERSION and payload["units"] == {"x": "m", "a": "rad"}
-    # the chosen method per component is the evaluation's winner
+    assert payload["format_version"] == FORMAT_VERSION == 2 and payload["units"] == {"x": "m", "a": "rad"}
+    assert payload["approach_directions"] == {"x": [], "a": []}
+    assert payload["methods"] == {c: record.method_for(c) for c in ("x", "a")}
+    # the kept method per component is the leave-one-point-out winner, and the record says on what data
     for c in ("x", "a"):
-        assert record.models[c].method == record.evaluation.best(c)
+        assert record.method_for(c) == record.evaluation.best(c, LOPO)
+        assert payload["evaluation"]["data"][c]["n_observations"] == 135
 
 
-def test_correction_removes_the_known_error(record, scenario):
+def test_correct_and_predict_error_share_one_result_convention(record, scenario):
     true_value = np.linspace(0.001, 0.069, 40)
     measured = true_value + scenario.true_error["x"](true_value)
-    corrected, flags = record.correct("x", measured)
-    assert not np.any(flags)
+    result = record.correct("x", measured)
+    assert isinstance(result, CorrectionResult) and result.ok and result.messages() == []
+    assert result.corrected.shape == result.predicted_error.shape == result.out_of_range.shape == (40,)
+    np.testing.assert_array_equal(result.corrected, measured - result.predicted_error)
     # group 0's error is the model's frame; the residual is model error only (no noise added here)
-    assert np.abs(corrected - true_value).max() < 1.5e-6
-    value, flag = record.correct("x", float(measured[3]))
-    assert isinstance(value, float) and flag is False
+    assert np.abs(result.corrected - true_value).max() < 1.5e-6
+    grid = record.predict_error("x", measured.reshape(5, 8))
+    assert grid.corrected.shape == (5, 8)
+    np.testing.assert_array_equal(grid.predicted_error.ravel(), result.predicted_error)
+    single = record.correct("x", float(measured[3]))
+    assert single.corrected.shape == () and float(single.corrected) == pytest.approx(result.corrected[3], abs=1e-15)
 
 
-def test_extrapolation_is_flagged_and_warned(record):
+def test_out_of_range_use_is_reported_in_the_result_never_warned(record):
     lo, hi = record.validity["a"]
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        _, inside = record.correct("a", 0.5 * (lo + hi))
-    assert inside is False
-    with pytest.warns(OutOfCalibrationRangeWarning, match="outside the calibrated range"):
-        _, outside = record.correct("a", hi + 0.01)
-    assert outside is True
-    with pytest.warns(OutOfCalibrationRangeWarning):
-        pose, flags = record.correct_pose({"x": 0.035, "a": lo - 0.001, "c": 0.2})
-    assert flags == {"x": False, "a": True, "c": False}
-    assert pose["c"] == 0.2 and pose["x"] != 0.035
+        inside = record.correct("a", 0.5 * (lo + hi))
+        outside = record.correct("a", np.array([lo - 0.01, 0.5 * (lo + hi), hi + 0.01]))
+        pose = record.correct_pose([0.035, 0.0, 0.0, lo - 0.001, 0.0, 0.2])
+    assert inside.ok and not bool(inside.out_of_range)
+    np.testing.assert_array_equal(outside.out_of_range, [True, False, True])
+    assert "2 value(s) outside the calibrated range" in outside.messages()[0]
+    assert isinstance(pose, PoseCorrection)
+    np.testing.assert_array_equal(pose.out_of_range, [False, False, False, True, False, False])
+    np.testing.assert_array_equal(pose.modelled, [c in ("x", "a") for c in COMPONENTS])
+    assert pose.corrected[5] == 0.2 and pose.corrected[0] != 0.035 and pose.predicted_error[1] == 0.0
+    assert not pose.ok and len(pose.messages()) == 1 and pose.messages()[0].startswith("a:")
 
 
-def test_unknown_components_are_refused(record):
+def test_correct_pose_takes_directions_per_component(record):
+    pose = [0.035, 0.0, 0.0, 0.0, 0.0, 0.0]
+    for direction in (1, [1, None, None, 1, None, None], {"x": 1, "a": 1}):
+        result = record.correct_pose(pose, direction)
+        # the record is one-directional without a recorded direction: any asked direction is uncovered
+        np.testing.assert_array_equal(result.direction_not_covered, [True, False, False, True, False, False])
+    assert not record.correct_pose(pose).direction_not_covered.any()
+    with pytest.raises(ValueError, match="6 components"):
+        record.correct_pose([0.0, 0.0])
+    with pytest.raises(ValueError, match="need 6 entries"):
+        record.correct_pose(pose, [1, 1])
+    with pytest.raises(ValueError, match="unknown pose component"):
+        record.correct_pose(pose, {"w": 1})
+
+
+def test_unknown_components_and_bad_values_are_refused(record):
     with pytest.raises(ValueError, match="no model for component 'y'"):
         record.correct("y", 0.01)
-    with pytest.raises(ValueError, match="unknown pose component"):
-        record.correct_pose({"w": 1.0})
+    with pytest.raises(ValueError, match="no model for component 'y'"):
+        record.method_for("y")
+    with pytest.raises(ValueError, match="must be finite"):
+        record.correct("x", np.nan)
+    with pytest.raises(ValueError, match="direction must be"):
+        record.correct("x", 0.01, direction=2)
+    with pytest.raises(ValueError, match="give one direction or one per value"):
+        record.correct("x", [0.01, 0.02, 0.03], direction=[1, -1])
+
+
+def test_a_format_1_record_still_loads_and_corrects_as_before():
+    record = CalibrationRecord.from_json(FORMAT_1["record"])
+    assert record.source_version == 1 and record.source_id == FORMAT_1["content_id"]
+    assert record.content_id != record.source_id  # its content now hashes as format 2
+    assert "format-1 evaluation" in record.evaluation.note
+    for component, probe in FORMAT_1["probes"].items():
+        assert record.method_for(component) == probe["method"] and record.approach_directions(component) == ()
+        result = record.correct(component, np.array(probe["measured"]))
+        np.testing.assert_allclose(result.corrected, probe["corrected"], rtol=0, atol=1e-15)
+        np.testing.assert_array_equal(result.out_of_range, probe["out_of_range"])
+    upgraded = CalibrationRecord.from_json(record.to_json())
+    assert upgraded.source_version == 2 and upgraded.content_id == record.content_id
 
 
 def _rehash(payload):
     """Recompute the content id, so only the intended defect remains."""
-    from instrument.compensation._record import _content_id
+    import hashlib
 
     payload.pop("content_id", None)
-    payload["content_id"] = _content_id(payload)
+    canonical = json.dumps(payload, sort_keys=True, separators=(",", ":"), allow_nan=False)
+    payload["content_id"] = "sha256:" + hashlib.sha256(canonical.encode("utf-8")).hexdigest()
     return json.dumps(payload)
 
 
@@ -109,20 +171,24 @@ def _rehash(payload):
         (lambda text: text[: len(text) // 2], "not valid JSON"),
         (lambda text: "[1, 2, 3]", "JSON object"),
         (lambda text: _rehash({**json.loads(text), "format": "something-else"}), "not a calibration record"),
-        (lambda text: _rehash({**json.loads(text), "format_version": FORMAT_VERSION + 1}), "version"),
+        (lambda text: _rehash({**json.loads(text), "format_version": 3}),
+         "format version 3 is not supported \\(this software reads versions 1, 2\\)"),
         (lambda text: _rehash({k: v for k, v in json.loads(text).items() if k != "models"}), "missing field"),
         (lambda text: json.dumps({k: v for k, v in json.loads(text).items() if k != "content_id"}), "missing field"),
         (lambda text: text.replace('"run-2024-001"', '"run-2024-002"'), "content id mismatch"),
         (lambda text: _rehash({**json.loads(text), "models": {"x": {"method": "csf"}}}), "malformed"),
         (lambda text: _rehash({**json.loads(text), "models": {"q": json.loads(text)["models"]["x"]}}),
          "unknown component"),
+        (lambda text: _rehash({**json.loads(text), "models": {
+            "x": {**json.loads(text)["models"]["x"], "directions": [2]}}}), "malformed"),
     ],
     ids=["truncated", "not-object", "wrong-format", "wrong-version", "missing-models", "missing-id",
-         "hash-mismatch", "malformed-model", "unknown-component"],
+         "hash-mismatch", "malformed-model", "unknown-component", "bad-direction"],
 )
-def test_corrupted_records_raise_a_clear_error(record, corrupt, message):
-    with pytest.raises(CalibrationRecordError, match=message):
+def test_corrupted_records_raise_one_clear_error(record, corrupt, message):
+    with pytest.raises(CalibrationRecordError, match=message) as caught:
         CalibrationRecord.from_json(corrupt(record.to_json()))
+    assert "\n" not in str(caught.value)
 
 
 def test_a_tampered_number_is_caught(record):
@@ -133,10 +199,21 @@ def test_a_tampered_number_is_caught(record):
     assert issubclass(CalibrationRecordError, ValueError)
 
 
-def test_fixed_method_record_without_evaluation(scenario):
-    rec = calibrate(scenario.data["b"], {"csf": SmoothingSplineCompensator()}, PROVENANCE, method="csf",
-                    evaluate_first=False)
-    again = CalibrationRecord.from_json(rec.to_json(indent=2))
-    assert again.evaluation is None and again.models["b"].method == "csf"
+def test_a_named_method_is_evaluated_alone_or_not_at_all(scenario):
+    compensators = {"csf": SmoothingSplineCompensator(), "none": NoCompensation()}
+    evaluated = calibrate(scenario.data["b"], compensators, method="csf")
+    assert {r.method for r in evaluated.evaluation.rows} == {"csf"} and evaluated.method == "csf"
+    bare = calibrate(scenario.data["b"], compensators, PROVENANCE, method="csf", evaluation=False)
+    again = CalibrationRecord.from_json(bare.to_json(indent=2))
+    assert again.evaluation is None and again.method_for("b") == "csf"
     with pytest.raises(ValueError, match="unknown compensator"):
-        calibrate(scenario.data["b"], {"csf": SmoothingSplineCompensator()}, PROVENANCE, method="esn")
+        calibrate(scenario.data["b"], compensators, method="esn")
+    with pytest.raises(ValueError, match="needs the evaluation"):
+        calibrate(scenario.data["b"], compensators, evaluation=False)
+
+
+def test_a_record_made_from_partial_data_keeps_validity(scenario):
+    data = scenario.data["c"]
+    narrow = CalibrationData("c", data.measured, data.reference, data.group, data.point)
+    rec = calibrate(narrow, {"csf": SmoothingSplineCompensator()}, method="csf", evaluation=False)
+    assert rec.validity["c"] == (float(data.measured.min()), float(data.measured.max()))

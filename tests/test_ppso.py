@@ -79,3 +79,24 @@ def test_knee_of_a_known_front():
 def test_bad_bounds_are_refused():
     with pytest.raises(ValueError, match="bounds"):
         ppso_minimize(schaffer, [1.0], [0.0])
+
+
+def test_initial_positions_start_the_swarm():
+    seen = []
+
+    def objective(x):
+        seen.append(x.copy())
+        return x[0] ** 2, (x[0] - 2.0) ** 2
+
+    ppso_minimize(objective, [-10.0], [10.0], n_particles=5, n_iterations=1, seed=0, initial=np.array([[1.25], [20.0]]))
+    np.testing.assert_array_equal(seen[0], [1.25])
+    np.testing.assert_array_equal(seen[1], [10.0])  # clipped into the bounds
+
+
+def test_ideal_point_is_chosen_in_the_objectives_own_unit():
+    # training RMS barely varies, held-out RMS does: in the shared unit the last member is nearest
+    # to the ideal point; normalising each axis to [0, 1] would pick the middle one
+    f = np.array([[0.0, 1.0], [0.001, 0.3], [0.002, 0.29]])
+    assert ParetoResult(np.zeros((3, 1)), f, 0).ideal_point_index() == 2
+    g = (f - f.min(axis=0)) / np.ptp(f, axis=0)
+    assert int(np.argmin(np.sum(g**2, axis=1))) == 1

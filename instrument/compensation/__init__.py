@@ -1,8 +1,14 @@
 """Error compensation of the six pose components (method.md §4; paper §3, eqs 18–37).
 
-CSF (smoothing spline, λ by GCV on a log grid) → group alignment → PPSO-tuned ESN, plus
-baselines behind one interface, an honest held-out evaluation, and a versioned calibration
-record. Pure: no I/O (procedures read and write the record's JSON text).
+CSF (smoothing spline, λ by GCV on a log grid) → group alignment → PPSO-tuned CSF + ESN, plus
+baselines behind one interface, direction-aware (hysteresis) fitting, an honest held-out
+evaluation (leave one point out, leave one group out), and a versioned calibration record.
+Pure: no I/O (procedures read and write the record's JSON text).
+
+Quick use::
+
+    record = calibrate(CalibrationData("x", measured, reference, group, point, direction))
+    record.correct("x", value, direction=+1).corrected
 """
 
 from instrument.compensation._align import GroupAlignment, align_groups, stable_interval
@@ -14,14 +20,16 @@ from instrument.compensation._baselines import (
     fit_polynomial,
 )
 from instrument.compensation._compensators import (
+    AlignedPoints,
     Compensator,
     CsfPpsoEsnCompensator,
+    Curve,
     FittedModel,
     GaussianProcessCompensator,
     NoCompensation,
     PolynomialCompensator,
     SmoothingSplineCompensator,
-    SumCurve,
+    aligned_points,
     curve_from_dict,
     default_compensators,
 )
@@ -30,24 +38,34 @@ from instrument.compensation._data import (
     ARCSEC,
     COMPONENTS,
     LINEAR_COMPONENTS,
+    MICROMETRE,
     CalibrationData,
-    SyntheticScenario,
     display_unit,
     infer_points,
     noise_floor,
-    paper_like_scenario,
     point_means,
-    synthetic_calibration,
 )
 from instrument.compensation._esn import (
-    EsnCurve,
+    SELECTIONS,
+    CsfEsnCurve,
     EsnHyperparameters,
     Reservoir,
-    fit_esn,
+    decode,
+    features,
+    joint_fit,
     make_reservoir,
-    tune_esn,
+    tune_csf_esn,
 )
-from instrument.compensation._evaluate import EvaluationRow, EvaluationTable, evaluate
+from instrument.compensation._evaluate import (
+    LOGO,
+    LOPO,
+    SCHEMES,
+    EvaluationRow,
+    EvaluationTable,
+    evaluate,
+    leave_one_group_out_residuals,
+    leave_one_point_out_residuals,
+)
 from instrument.compensation._ppso import (
     ParetoResult,
     generational_distance,
@@ -56,28 +74,47 @@ from instrument.compensation._ppso import (
 )
 from instrument.compensation._record import (
     FORMAT_VERSION,
+    READABLE_VERSIONS,
     CalibrationRecord,
     CalibrationRecordError,
-    OutOfCalibrationRangeWarning,
+    CorrectionResult,
+    PoseCorrection,
     Provenance,
     calibrate,
 )
-from instrument.compensation._spline import SplineCurve, fit_spline_curve
+from instrument.compensation._spline import SplineCurve, fit_spline_curve, reinsch_penalty
+from instrument.compensation._synthetic import (
+    Campaign,
+    HeldOutSet,
+    SyntheticScenario,
+    hard_campaign,
+    held_out_residuals,
+    paper_like_scenario,
+    synthetic_calibration,
+)
 
 __all__ = [
-    "FORMAT_VERSION",
-    "CalibrationRecord",
-    "CalibrationRecordError",
-    "OutOfCalibrationRangeWarning",
-    "Provenance",
     "ANGULAR_COMPONENTS",
     "ARCSEC",
     "COMPONENTS",
+    "FORMAT_VERSION",
     "LINEAR_COMPONENTS",
+    "LOGO",
+    "LOPO",
+    "MICROMETRE",
+    "READABLE_VERSIONS",
+    "SCHEMES",
+    "SELECTIONS",
+    "AlignedPoints",
     "CalibrationData",
+    "CalibrationRecord",
+    "CalibrationRecordError",
+    "Campaign",
     "Compensator",
+    "CorrectionResult",
+    "CsfEsnCurve",
     "CsfPpsoEsnCompensator",
-    "EsnCurve",
+    "Curve",
     "EsnHyperparameters",
     "EvaluationRow",
     "EvaluationTable",
@@ -85,35 +122,45 @@ __all__ = [
     "GaussianProcessCompensator",
     "GaussianProcessCurve",
     "GroupAlignment",
+    "HeldOutSet",
     "NoCompensation",
     "ParetoResult",
     "PolynomialCompensator",
     "PolynomialCurve",
+    "PoseCorrection",
+    "Provenance",
     "Reservoir",
     "SmoothingSplineCompensator",
     "SplineCurve",
-    "SumCurve",
     "SyntheticScenario",
     "ZeroCurve",
     "align_groups",
+    "aligned_points",
     "calibrate",
     "curve_from_dict",
+    "decode",
     "default_compensators",
     "display_unit",
     "evaluate",
-    "fit_esn",
+    "features",
     "fit_gaussian_process",
     "fit_polynomial",
     "fit_spline_curve",
     "generational_distance",
+    "hard_campaign",
+    "held_out_residuals",
     "infer_points",
+    "joint_fit",
+    "leave_one_group_out_residuals",
+    "leave_one_point_out_residuals",
     "make_reservoir",
     "noise_floor",
     "non_dominated_mask",
     "paper_like_scenario",
     "point_means",
     "ppso_minimize",
+    "reinsch_penalty",
     "stable_interval",
     "synthetic_calibration",
-    "tune_esn",
+    "tune_csf_esn",
 ]

@@ -13,12 +13,18 @@ the reference group's own noise is averaged down; offsets stay relative to the r
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
 from instrument.compensation._data import point_means
 from instrument.compensation._spline import fit_spline_curve
+
+
+class Curve(Protocol):
+    def predict(self, x: np.ndarray) -> np.ndarray: ...
 
 
 @dataclass(frozen=True)
@@ -33,14 +39,23 @@ class GroupAlignment:
     """
 
     reference_group: int
-    offsets: dict
-    interval: tuple | None
+    offsets: dict[int, float]
+    interval: tuple[float, float] | None
 
     def offset(self, group: int) -> float:
         return float(self.offsets.get(int(group), 0.0))
 
     def apply(self, error: np.ndarray, group: np.ndarray) -> np.ndarray:
-        return error + np.array([self.offset(g) for g in group])
+        """Error brought into the reference group's frame (unknown groups get no offset)."""
+        return error + self.offsets_of(group)
+
+    def offsets_of(self, group: np.ndarray) -> np.ndarray:
+        """The offset of each observation's group (0 for a group the alignment does not know)."""
+        group = np.asarray(group)
+        out = np.zeros(group.shape)
+        for g, value in self.offsets.items():
+            out[group == g] = value
+        return out
 
     def to_dict(self) -> dict:
         return {
@@ -59,27 +74,39 @@ class GroupAlignment:
         )
 
     @classmethod
-    def identity(cls, groups=(0,)) -> GroupAlignment:
+    def identity(cls, groups: Iterable[int] | np.ndarray = (0,)) -> GroupAlignment:
         groups = sorted({int(g) for g in groups})
         return cls(groups[0], dict.fromkeys(groups, 0.0), None)
 
 
-def stable_interval(curve, x_points: np.ndarray, window_points: int) -> tuple[float, float]:
-    """Window of ``window_points`` consecutive calibration points with the least total variation
-    ∫|g'| of the curve (the error curve varies least there)."""
+def stable_interval(curve: Curve, x_points: np.ndarray, window_points: int) -> tuple[float, float]:
+    """Window of consecutive calibration points where the curve varies least.
+
+    Parameters
+    ----------
+    curve : anything with ``predict(x)``
+    x_points : calibration point positions
+    window_points : points per window (at least 2)
+
+    Returns
+    -------
+    (lo, hi) : the window with the least total variation ∫|g'| of the curve
+    """
     x_points = np.sort(np.asarray(x_points, dtype=float))
     window_points = int(min(max(window_points, 2), x_points.size))
-    best, best_tv = (x_points[0], x_points[window_points - 1]), np.inf
-    for start in range(x_points.size - window_points + 1):
-        lo, hi = x_points[start], x_points[start + window_points - 1]
-        fine = curve.predict(np.linspace(lo, hi, 40 * window_points))
-        tv = np.sum(np.abs(np.diff(fine)))
-        if tv < best_tv:
-            best, best_tv = (float(lo), float(hi)), tv
-    return best
+    per_step = 40  # samples per calibration step: enough to see a ripple's turning points
+    fine = np.concatenate([np.linspace(a, b, per_step, endpoint=False) for a, b in zip(x_points[:-1], x_points[1:])]
+                          + [x_points[-1:]])
+    variation = np.abs(np.diff(np.asarray(curve.predict(fine), dtype=float)))
+    per_interval = variation.reshape(x_points.size - 1, per_step).sum(axis=1)
+    steps = window_points - 1
+    totals = np.convolve(per_interval, np.ones(steps), mode="valid")
+    start = int(np.argmin(totals))
+    return float(x_points[start]), float(x_points[start + steps])
 
 
-def _offsets_against(curve, x, e, group, point, interval, groups):
+def _offsets_against(curve: Curve, x: np.ndarray, e: np.ndarray, group: np.ndarray, point: np.ndarray,
+                     interval: tuple[float, float], groups: list[int]) -> dict[int, float]:
     offsets = {}
     for g in groups:
         sel = group == g
@@ -104,9 +131,14 @@ def align_groups(
 
     Parameters
     ----------
-    measured, error, group, point : (n,) observation arrays
+    measured, error, group, point : (n,) observation arrays (error = measured − reference, derived
+        by the caller: ``aligned_points(data)`` is the entry point that takes CalibrationData)
     window_fraction : fraction of the calibration points spanned by the stable interval
     refine : re-estimate the offsets once against the pooled curve of the aligned data
+
+    Returns
+    -------
+    GroupAlignment
     """
     x, e = np.asarray(measured, float), np.asarray(error, float)
     group, point = np.asarray(group, int), np.asarray(point, int)

@@ -15,7 +15,7 @@ class ZeroCurve:
 
     kind = "none"
 
-    def predict(self, x):
+    def predict(self, x: np.ndarray) -> np.ndarray:
         return np.zeros(np.shape(x))
 
     def to_dict(self) -> dict:
@@ -36,7 +36,7 @@ class PolynomialCurve:
 
     kind = "polynomial"
 
-    def predict(self, x):
+    def predict(self, x: np.ndarray) -> np.ndarray:
         return np.polyval(self.coefficients, (np.asarray(x, float) - self.center) / self.half_span)
 
     def to_dict(self) -> dict:
@@ -48,9 +48,21 @@ class PolynomialCurve:
         return cls(float(d["center"]), float(d["half_span"]), np.asarray(d["coefficients"], float))
 
 
-def fit_polynomial(x, y, w, *, degree: int | None = None, max_degree: int = 5) -> PolynomialCurve:
-    """Weighted least-squares polynomial; degree by exact leave-one-point-out error when None
-    (interior points scored, as everywhere in this package)."""
+def fit_polynomial(x: np.ndarray, y: np.ndarray, w: np.ndarray, *, degree: int | None = None,
+                   max_degree: int = 5) -> PolynomialCurve:
+    """Weighted least-squares polynomial in u = (x − center)/half_span.
+
+    Parameters
+    ----------
+    x, y, w : (n,) point means and weights
+    degree : fixed degree; when None, the degree (1 … ``max_degree``) with the lowest exact
+        leave-one-point-out error over the interior points (as everywhere in this package)
+    max_degree : int
+
+    Returns
+    -------
+    PolynomialCurve
+    """
     x, y, w = (np.asarray(v, float) for v in (x, y, w))
     center, half_span = 0.5 * (x.min() + x.max()), 0.5 * (x.max() - x.min())
     u = (x - center) / half_span
@@ -81,7 +93,7 @@ class GaussianProcessCurve:
 
     kind = "gaussian_process"
 
-    def predict(self, x):
+    def predict(self, x: np.ndarray) -> np.ndarray:
         x = np.asarray(x, float)
         k = self.signal_variance * np.exp(
             -0.5 * ((x.ravel()[:, None] - self.x_train[None, :]) / self.length_scale) ** 2
@@ -99,7 +111,8 @@ class GaussianProcessCurve:
                    float(d["signal_variance"]), float(d["length_scale"]), float(d["noise_variance"]))
 
 
-def fit_gaussian_process(x, y, w, *, point_variance: float | None = None) -> GaussianProcessCurve:
+def fit_gaussian_process(x: np.ndarray, y: np.ndarray, w: np.ndarray, *, point_variance: float | None = None
+                         ) -> GaussianProcessCurve:
     """GP regression on point means with hyper-parameters by maximum marginal likelihood.
 
     The length scale is bounded below by the grid step (median spacing of the calibration
@@ -107,6 +120,15 @@ def fit_gaussian_process(x, y, w, *, point_variance: float | None = None) -> Gau
     alone between points. The noise variance of a point mean is ``point_variance / w`` with
     ``point_variance`` (variance of one observation) fitted within [¼, 4]× the given value when
     given, else free.
+
+    Parameters
+    ----------
+    x, y, w : (n,) point means and weights (repeat counts)
+    point_variance : variance of one observation (the noise floor squared), or None
+
+    Returns
+    -------
+    GaussianProcessCurve
     """
     x, y, w = (np.asarray(v, float) for v in (x, y, w))
     order = np.argsort(x)
@@ -123,19 +145,25 @@ def fit_gaussian_process(x, y, w, *, point_variance: float | None = None) -> Gau
     bounds = [(np.log(var_r * 1e-3), np.log(var_r * 1e3)), (np.log(step), np.log(2 * span)), noise_bounds]
     d2 = (x[:, None] - x[None, :]) ** 2
 
-    def nll(theta):
+    def nll(theta: np.ndarray) -> tuple[float, np.ndarray]:
+        """Negative log marginal likelihood and its gradient in (log s², log ℓ, log n²)."""
         s2, ell, n2 = np.exp(theta)
-        k = s2 * np.exp(-0.5 * d2 / ell**2) + np.diag(n2 / w) + 1e-12 * s2 * np.eye(x.size)
+        shape = np.exp(-0.5 * d2 / ell**2)
+        k = s2 * shape + np.diag(n2 / w) + 1e-12 * s2 * np.eye(x.size)
         try:
             c = cho_factor(k, lower=True)
         except np.linalg.LinAlgError:
-            return 1e300
+            return 1e300, np.zeros(3)
         a = cho_solve(c, r)
-        return 0.5 * r @ a + np.sum(np.log(np.diag(c[0])))
+        inner = cho_solve(c, np.eye(x.size)) - np.outer(a, a)  # K⁻¹ − ααᵀ
+        derivatives = (s2 * shape, s2 * shape * d2 / ell**2, np.diag(n2 / w))
+        gradient = np.array([0.5 * np.sum(inner * dk) for dk in derivatives])
+        return float(0.5 * r @ a + np.sum(np.log(np.diag(c[0])))), gradient
 
     starts = [np.array([np.log(var_r), np.log(ell0), np.mean(noise_bounds)])
               for ell0 in (step * 1.5, span / 4, span)]
-    best = min((minimize(nll, s, method="L-BFGS-B", bounds=bounds) for s in starts), key=lambda res: res.fun)
+    best = min((minimize(nll, s, jac=True, method="L-BFGS-B", bounds=bounds) for s in starts),
+               key=lambda res: res.fun)
     s2, ell, n2 = np.exp(best.x)
     k = s2 * np.exp(-0.5 * d2 / ell**2) + np.diag(n2 / w) + 1e-12 * s2 * np.eye(x.size)
     alpha = cho_solve(cho_factor(k, lower=True), r)

@@ -1,8 +1,14 @@
-"""Calibration data: the container, repeat statistics, and a paper-like synthetic scenario."""
+"""Calibration data: the container, its one input convention, and repeat statistics.
+
+A calibration observation is (measured, reference) of one pose component, with the calibration
+group (start pose), the calibration point (commanded position) and optionally the approach
+direction (+1 from below, −1 from above). The error is always derived inside as
+measured − reference; nothing in this package takes an error array from the caller.
+"""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -15,9 +21,25 @@ ANGULAR_COMPONENTS = ("a", "b", "c")
 ARCSEC = np.pi / (180.0 * 3600.0)  # one arc-second in radians
 MICROMETRE = 1e-6
 
+#: Largest plausible ratio of the error's spread to the measured range. A real calibration error is
+#: a few per cent of the range at most; an error passed as the reference (or the other way round)
+#: makes the derived "error" span the whole range (ratio ≈ 1).
+MAX_ERROR_TO_RANGE = 0.25
+
 
 def display_unit(component: str) -> tuple[str, float]:
-    """Report unit and the factor SI value × factor = displayed value (µm or arc-seconds)."""
+    """Display unit of a component's errors.
+
+    Parameters
+    ----------
+    component : str
+        One of ``COMPONENTS``.
+
+    Returns
+    -------
+    unit, factor : str, float
+        ``"um"`` or ``"arcsec"``, and the factor with SI value × factor = displayed value.
+    """
     if component in LINEAR_COMPONENTS:
         return "um", 1.0 / MICROMETRE
     if component in ANGULAR_COMPONENTS:
@@ -31,11 +53,21 @@ def check_component(component: str) -> str:
     return component
 
 
+def check_direction(direction: object, where: str) -> np.ndarray | None:
+    """``None`` or an int array of ±1 (a scalar broadcasts later)."""
+    if direction is None:
+        return None
+    d = np.asarray(direction)
+    if d.dtype == object or not np.all(np.isin(d, (-1, 1))):
+        raise ValueError(f"{where}: approach direction must be +1, -1 or None, got {direction!r}")
+    return d.astype(int)
+
+
 @dataclass(frozen=True)
 class CalibrationData:
     """Calibration observations of one pose component against a reference instrument.
 
-    One row per observation (one repeat at one calibration point in one group).
+    One row per observation (one approach to one calibration point in one group).
 
     Attributes
     ----------
@@ -44,57 +76,119 @@ class CalibrationData:
     measured : (n,) array
         Value reported by the instrument (m or rad).
     reference : (n,) array
-        Value given by the reference instrument (interferometer, rotary table, theodolite).
-    group : (n,) int array
+        Value given by the reference instrument (interferometer, rotary table, theodolite) for the
+        same pose. Never the error: the error is ``measured − reference``, derived here, and data
+        whose derived error spans more than ``MAX_ERROR_TO_RANGE`` of the measured range is
+        refused (that is what passing the error as the reference looks like).
+    group : (n,) int array, optional
         Calibration group (each started from a different initial pose; paper §3.4 step 1).
-    point : (n,) int array
-        Calibration point index (the commanded position); repeats share it across groups.
+        Default (None or empty): one group.
+    point : (n,) int array, optional
+        Calibration point (the commanded position); repeats share it across groups and
+        directions. Default (None or empty): inferred by clustering the measured values (``infer_points``).
+    direction : (n,) array of ±1, optional
+        Approach direction of each observation (+1: the point was approached from below, −1:
+        from above), as in a bidirectional calibration (ISO 230-2). ``None``: not recorded
+        (a one-directional calibration whose direction is unknown).
     """
 
     component: str
     measured: np.ndarray
     reference: np.ndarray
-    group: np.ndarray
-    point: np.ndarray
+    group: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    point: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    direction: np.ndarray | None = None
 
     def __post_init__(self) -> None:
+        where = f"CalibrationData({self.component})"
         check_component(self.component)
         measured = np.asarray(self.measured, dtype=float).ravel()
         reference = np.asarray(self.reference, dtype=float).ravel()
-        group = np.asarray(self.group).ravel()
-        point = np.asarray(self.point).ravel()
         n = measured.size
-        if not (reference.size == group.size == point.size == n):
-            raise ValueError(
-                f"CalibrationData({self.component}): measured, reference, group, point must have one "
-                f"length; got {n}, {reference.size}, {group.size}, {point.size}"
-            )
+        given = lambda labels: labels is not None and np.size(labels) > 0  # None or empty: not given
+        group = np.asarray(self.group).ravel() if given(self.group) else np.zeros(n, int)
         if n == 0 or not (np.all(np.isfinite(measured)) and np.all(np.isfinite(reference))):
-            raise ValueError(f"CalibrationData({self.component}): values must be finite and non-empty")
+            raise ValueError(f"{where}: measured and reference must be finite and non-empty")
+        point = np.asarray(self.point).ravel() if given(self.point) else infer_points(measured)
+        direction = check_direction(self.direction, where)
+        sizes = [reference.size, group.size, point.size] + ([] if direction is None else [direction.size])
+        if any(s != n for s in sizes):
+            raise ValueError(f"{where}: measured, reference, group, point (and direction) must have one length; "
+                             f"got {n}, {', '.join(str(s) for s in sizes)}")
+        error_spread, measured_range = float(np.ptp(measured - reference)), float(np.ptp(measured))
+        if measured_range > 0 and error_spread > MAX_ERROR_TO_RANGE * measured_range:
+            raise ValueError(
+                f"{where}: the error measured − reference spans {error_spread:.6g} over a measured range of "
+                f"{measured_range:.6g}; pass the reference instrument's reading as 'reference', not the error")
         object.__setattr__(self, "measured", measured)
         object.__setattr__(self, "reference", reference)
         object.__setattr__(self, "group", group.astype(int))
         object.__setattr__(self, "point", point.astype(int))
+        object.__setattr__(self, "direction", direction)
 
     @property
     def error(self) -> np.ndarray:
         """Measurement error, measured − reference."""
         return self.measured - self.reference
 
+    @property
+    def directions(self) -> tuple[int, ...]:
+        """Approach directions present: ``()`` when not recorded, ``(1,)``, ``(-1,)`` or ``(-1, 1)``."""
+        return () if self.direction is None else tuple(int(d) for d in np.unique(self.direction))
+
+    @property
+    def bidirectional(self) -> bool:
+        return len(self.directions) == 2
+
+    @property
+    def n_points(self) -> int:
+        return int(np.unique(self.point).size)
+
     def subset(self, mask: np.ndarray) -> CalibrationData:
-        return CalibrationData(
-            self.component, self.measured[mask], self.reference[mask], self.group[mask], self.point[mask]
-        )
+        """The observations selected by a boolean mask (or index array)."""
+        return CalibrationData(self.component, self.measured[mask], self.reference[mask], self.group[mask],
+                               self.point[mask], None if self.direction is None else self.direction[mask])
+
+    def point_order(self) -> np.ndarray:
+        """Point labels sorted by their mean measured value."""
+        labels = np.unique(self.point)
+        centers = np.array([self.measured[self.point == p].mean() for p in labels])
+        return labels[np.argsort(centers)]
+
+    def summary(self) -> dict:
+        """What the data is, for the record: counts, directions, range, and a SHA-256 of the arrays."""
+        import hashlib
+
+        digest = hashlib.sha256()
+        for array in (self.measured, self.reference, self.group, self.point,
+                      np.zeros(0) if self.direction is None else self.direction):
+            digest.update(np.ascontiguousarray(array).tobytes())
+        return {
+            "n_observations": int(self.measured.size),
+            "n_points": self.n_points,
+            "n_groups": int(np.unique(self.group).size),
+            "directions": list(self.directions),
+            "measured_range": [float(self.measured.min()), float(self.measured.max())],
+            "data_sha256": digest.hexdigest(),
+        }
 
 
-def point_means(measured: np.ndarray, error: np.ndarray, point: np.ndarray):
+def point_means(measured: np.ndarray, error: np.ndarray, point: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Average all observations of each calibration point.
+
+    Parameters
+    ----------
+    measured, error, point : (n,) arrays
+        Observations and their point labels.
 
     Returns
     -------
-    x_mean, e_mean, count, labels : arrays sorted by x_mean.
+    x_mean, e_mean, count, labels : arrays
+        Per point, sorted by ``x_mean``.
     """
     labels, inverse, count = np.unique(point, return_inverse=True, return_counts=True)
+    inverse = inverse.ravel()
     x_mean = np.bincount(inverse, weights=measured) / count
     e_mean = np.bincount(inverse, weights=error) / count
     order = np.argsort(x_mean)
@@ -106,6 +200,15 @@ def infer_points(measured: np.ndarray, gap_fraction: float = 0.25) -> np.ndarray
 
     A new point starts where the gap to the previous value exceeds ``gap_fraction`` of the
     largest gap (repeats sit far closer together than the calibration step).
+
+    Parameters
+    ----------
+    measured : (n,) array
+    gap_fraction : float
+
+    Returns
+    -------
+    (n,) int array of point labels, numbered in increasing measured value.
     """
     measured = np.asarray(measured, dtype=float)
     order = np.argsort(measured)
@@ -118,134 +221,40 @@ def infer_points(measured: np.ndarray, gap_fraction: float = 0.25) -> np.ndarray
     return labels
 
 
-def noise_floor(measured_error: np.ndarray, group: np.ndarray, point: np.ndarray) -> float:
+def noise_floor(error: np.ndarray, *labels: np.ndarray) -> float:
     """Pooled repeat scatter (standard deviation, ddof = 1 per cell) of the error.
 
-    Cells are (group, point); this is the scatter of one observation that no model of the error
-    curve can remove (instrument noise plus reference noise).
+    Parameters
+    ----------
+    error : (n,) array
+    *labels : (n,) arrays
+        Cell labels, e.g. group, point and direction: a cell holds the repeats of one point.
+
+    Returns
+    -------
+    float
+        The scatter of one observation that no model of the error curve can remove (instrument
+        noise plus reference noise).
     """
-    keys = np.stack([np.asarray(group), np.asarray(point)], axis=1)
+    keys = np.stack([np.asarray(label) for label in labels], axis=1)
     _, inverse, count = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
     inverse = inverse.ravel()
-    means = np.bincount(inverse, weights=measured_error) / count
-    ss = np.sum((measured_error - means[inverse]) ** 2)
+    means = np.bincount(inverse, weights=error) / count
+    ss = np.sum((error - means[inverse]) ** 2)
     dof = np.sum(count - 1)
     if dof <= 0:
         raise ValueError("noise floor needs repeated observations at some calibration point")
     return float(np.sqrt(ss / dof))
 
 
-@dataclass(frozen=True)
-class SyntheticScenario:
-    """Synthetic calibration sets with their known truth.
-
-    Attributes
-    ----------
-    data : dict component → CalibrationData
-    true_error : dict component → callable(true value) → error of group 0 (the reference group)
-    group_offsets : dict component → (n_groups,) array, error offset of each group
-    noise_sigma : dict component → standard deviation of one observation's error noise
-    """
-
-    data: dict
-    true_error: dict
-    group_offsets: dict
-    noise_sigma: dict = field(default_factory=dict)
+def data_noise_floor(data: CalibrationData) -> float:
+    """``noise_floor`` of a calibration, cells = (group, point, direction)."""
+    direction = np.zeros(data.measured.size, int) if data.direction is None else data.direction
+    return noise_floor(data.error, data.group, data.point, direction)
 
 
-def synthetic_calibration(
-    component: str,
-    nominal: np.ndarray,
-    error_function: Callable[[np.ndarray], np.ndarray],
-    *,
-    repeats: int = 3,
-    group_offsets=(0.0,),
-    measurement_noise: float,
-    reference_noise: float,
-    positioning_jitter: float = 0.0,
-    rng: np.random.Generator,
-) -> CalibrationData:
-    """Simulate one calibration: every group visits every nominal point ``repeats`` times.
-
-    The stage stops at nominal + jitter (the true value); the reference reads true + its noise;
-    the instrument reads true + error(true) + group offset + its noise.
-    """
-    nominal = np.asarray(nominal, dtype=float)
-    n_groups = len(group_offsets)
-    g, p, _ = np.meshgrid(np.arange(n_groups), np.arange(nominal.size), np.arange(repeats), indexing="ij")
-    g, p = g.ravel(), p.ravel()
-    true_value = nominal[p] + rng.normal(0.0, positioning_jitter, p.size) if positioning_jitter else nominal[p]
-    reference = true_value + rng.normal(0.0, reference_noise, p.size)
-    measured = (
-        true_value
-        + error_function(true_value)
-        + np.asarray(group_offsets, dtype=float)[g]
-        + rng.normal(0.0, measurement_noise, p.size)
-    )
-    return CalibrationData(component, measured, reference, g, p)
-
-
-def _paper_like_error(rng: np.random.Generator, lo: float, hi: float, unit: float, amplitudes):
-    """A smooth error curve: scale error + quadratic + one periodic term (amplitudes in ``unit``)."""
-    linear, quadratic, periodic = amplitudes
-    a1 = rng.choice([-1.0, 1.0]) * rng.uniform(0.75, 1.0) * linear * unit
-    a2 = rng.choice([-1.0, 1.0]) * rng.uniform(0.5, 1.0) * quadratic * unit
-    a3 = rng.uniform(0.5, 1.0) * periodic * unit
-    period = rng.uniform(0.45, 0.7) * (hi - lo)
-    phase = rng.uniform(0.0, 2 * np.pi)
-    mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
-
-    def error(v):
-        u = (np.asarray(v, dtype=float) - mid) / half
-        return a1 * u + a2 * (u**2 - 1.0 / 3.0) + a3 * np.sin(2 * np.pi * (v - lo) / period + phase)
-
-    return error
-
-
-def paper_like_scenario(seed: int = 0, *, n_points: int = 15, repeats: int = 3, n_groups: int = 3) -> SyntheticScenario:
-    """The paper's calibration design (§3.4 step 1, §4.2) with a known, smooth error.
-
-    - x, y, z: 15 points 0–70 mm in 5 mm steps; error scale + quadratic + periodic, up to about
-      ±80 µm; instrument noise 0.4 µm, interferometer noise 0.1 µm (1σ); stage positioning
-      jitter 3 µm; group offsets 3–8 µm (group 0 has none). The periodic term's period is
-      0.45–0.7 of the range (about 6–10 calibration steps): structure finer than two steps cannot
-      be checked by any held-out scheme, since leaving a point out doubles the local step.
-    - a, b, c: 15 points −1.75° … +1.75° in 0.25° steps (the paper calibrates small rotations on a
-      rotary table; it does not print the range); error up to about ±40″; instrument noise 0.4″,
-      table noise 0.3″; jitter 1″; group offsets 2–5″.
-    """
-    rng = np.random.default_rng(seed)
-    data, truth, offsets, sigma = {}, {}, {}, {}
-    for component in COMPONENTS:
-        if component in LINEAR_COMPONENTS:
-            nominal = np.linspace(0.0, 0.070, n_points)
-            unit, amplitudes = MICROMETRE, (55.0, 18.0, 6.0)
-            meas, ref, jitter, offset_range = 0.4 * unit, 0.1 * unit, 3.0 * unit, (3.0, 8.0)
-        else:
-            nominal = np.deg2rad(np.linspace(-1.75, 1.75, n_points))
-            unit, amplitudes = ARCSEC, (28.0, 9.0, 3.0)
-            meas, ref, jitter, offset_range = 0.4 * unit, 0.3 * unit, 1.0 * unit, (2.0, 5.0)
-        error = _paper_like_error(rng, nominal[0], nominal[-1], unit, amplitudes)
-        group_offsets = np.concatenate(
-            [[0.0], rng.choice([-1.0, 1.0], n_groups - 1) * rng.uniform(*offset_range, n_groups - 1) * unit]
-        )
-        data[component] = synthetic_calibration(
-            component,
-            nominal,
-            error,
-            repeats=repeats,
-            group_offsets=group_offsets,
-            measurement_noise=meas,
-            reference_noise=ref,
-            positioning_jitter=jitter,
-            rng=rng,
-        )
-        truth[component], offsets[component] = error, group_offsets
-        sigma[component] = float(np.hypot(meas, ref))
-    return SyntheticScenario(data, truth, offsets, sigma)
-
-
-def as_data_mapping(calibration_data) -> Mapping[str, CalibrationData]:
+def as_data_mapping(calibration_data: CalibrationData | Mapping[str, CalibrationData] | Iterable[CalibrationData]
+                    ) -> dict[str, CalibrationData]:
     """Accept one CalibrationData, a sequence of them, or a mapping component → CalibrationData."""
     if isinstance(calibration_data, CalibrationData):
         return {calibration_data.component: calibration_data}

@@ -37,16 +37,13 @@ def non_dominated_mask(objectives: np.ndarray) -> np.ndarray:
     """True for rows not dominated by any other row (duplicates: the first one is kept)."""
     f = np.asarray(objectives, dtype=float)
     n = f.shape[0]
-    keep = np.ones(n, dtype=bool)
-    for i in range(n):
-        le = np.all(f <= f[i], axis=1)
-        lt = np.any(f < f[i], axis=1)
-        dominated_by = le & lt
-        same = np.all(f == f[i], axis=1)
-        same[i:] = False
-        if np.any(dominated_by) or np.any(same & keep):
-            keep[i] = False
-    return keep
+    # dominated[i, j]: row j dominates row i
+    no_worse = np.all(f[None, :, :] <= f[:, None, :], axis=2)
+    better = np.any(f[None, :, :] < f[:, None, :], axis=2)
+    dominated = np.any(no_worse & better, axis=1)
+    same = np.all(f[None, :, :] == f[:, None, :], axis=2)
+    earlier_duplicate = np.any(np.tril(same, k=-1), axis=1)
+    return ~(dominated | earlier_duplicate) if n else np.zeros(0, dtype=bool)
 
 
 def sigma_values(f: np.ndarray, f_min: np.ndarray, k: np.ndarray) -> np.ndarray:
@@ -82,9 +79,18 @@ class ParetoResult:
     objectives: np.ndarray
     n_evaluations: int
 
+    def ideal_point_index(self) -> int:
+        """Index of the member nearest to the ideal point (min f₁, min f₂), distances in the
+        objectives' own units: sound when both objectives measure the same quantity in one unit."""
+        f = self.objectives
+        return int(np.argmin(np.sum((f - f.min(axis=0)) ** 2, axis=1)))
+
     def knee_index(self) -> int:
         """Index of the knee: the front point farthest from the line through the two extremes
-        (objectives normalised to [0, 1]); with fewer than 3 points, the lowest second objective."""
+        (objectives normalised to [0, 1]); with fewer than 3 points, the lowest second objective.
+
+        Normalising makes an objective that barely varies as important as one spanning decades;
+        prefer ``ideal_point_index`` when both objectives share a unit."""
         f = self.objectives
         if f.shape[0] < 3:
             return int(np.argmin(f[:, 1]))
@@ -131,6 +137,7 @@ def ppso_minimize(
     integer: Sequence[bool] | None = None,
     epsilon: float = 1e-9,
     seed: int = 0,
+    initial: np.ndarray | None = None,
 ) -> ParetoResult:
     """Minimise two objectives with the Pareto PSO of the paper (eqs 24–29).
 
@@ -140,17 +147,18 @@ def ppso_minimize(
     lower, upper : bounds of the decision vector
     integer : per-dimension flag; flagged dimensions are rounded before evaluation
     seed : all randomness comes from ``numpy.random.default_rng(seed)``
+    initial : (k, d) positions that replace the first k random particles (a warm start)
 
     Returns
     -------
     ParetoResult
     """
     rng = np.random.default_rng(seed)
-    lower, upper = np.asarray(lower, dtype=float), np.asarray(upper, dtype=float)
-    if lower.shape != upper.shape or np.any(upper <= lower):
+    low, high = np.asarray(lower, dtype=float), np.asarray(upper, dtype=float)
+    if low.shape != high.shape or np.any(high <= low):
         raise ValueError("PPSO bounds: lower and upper must have one shape and lower < upper")
-    d = lower.size
-    span = upper - lower
+    d = low.size
+    span = high - low
     is_int = np.zeros(d, dtype=bool) if integer is None else np.asarray(integer, dtype=bool)
     n_eval = 0
 
@@ -163,7 +171,10 @@ def ppso_minimize(
             n_eval += 1
         return np.where(np.isfinite(out), out, np.inf), x
 
-    pos = lower + rng.random((n_particles, d)) * span
+    pos = low + rng.random((n_particles, d)) * span
+    if initial is not None:
+        start = np.clip(np.atleast_2d(np.asarray(initial, dtype=float))[:n_particles], low, high)
+        pos[: start.shape[0]] = start
     vel = np.zeros_like(pos)
     obj, pos = evaluate(pos)
     best_pos, best_obj = pos.copy(), obj.copy()
@@ -197,13 +208,12 @@ def ppso_minimize(
         # mutation with reach shrinking over the run (Coello, Pulido & Lechuga 2004)
         reach = (1.0 - progress) ** (1.0 / mutation_rate)
         mutate = rng.random(n_particles) < reach
-        for i in np.flatnonzero(mutate):
-            j = rng.integers(d)
-            delta_j = reach * span[j] * (rng.random() - 0.5)
-            pos[i, j] += delta_j
-        out = (pos < lower) | (pos > upper)
+        for mutant in np.flatnonzero(mutate):
+            j = int(rng.integers(d))
+            pos[mutant, j] += reach * span[j] * (rng.random() - 0.5)
+        out = (pos < low) | (pos > high)
         vel[out] *= -1.0
-        pos = np.clip(pos, lower, upper)
+        pos = np.clip(pos, low, high)
         obj, pos = evaluate(pos)
         # personal best: replace when dominated; when neither dominates, take the new one half the time
         for i in range(n_particles):

@@ -10,22 +10,34 @@ by generalised cross-validation (GCV) or by exact leave-one-point-out error, bot
 *logarithmic* grid of λ and refined — scipy's ``make_smoothing_spline(lam=None)`` searches a
 linear interval and over-smooths short, low-noise calibration curves by tens of µm.
 
-Natural end conditions force g'' = 0 at both ends, where real error curves often bend. The
-optional polynomial trend (``trend_degree``) is fitted first by weighted least squares and the
-spline smooths what is left, so the curvature at the ends comes from the trend.
+End intervals. Natural end conditions force g'' = 0 at both ends, where real error curves bend.
+With ``end_curvature=True`` the curve is g = s + c·u² with s the natural spline and c unpenalised
+(a partial spline): the penalty becomes ∫ (g'' − 2c)², so the curvature at both ends is the
+fitted c instead of 0. ``trend_degree`` instead fits a polynomial first and smooths what is left.
+Beyond the knots every curve here continues linearly.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from scipy.interpolate import CubicSpline
 from scipy.optimize import minimize_scalar
 
 
-def _reinsch_penalty(u: np.ndarray) -> np.ndarray:
-    """K = Q R⁻¹ Qᵀ, so that gᵀ K g = ∫ g''² of the natural spline through (u, g)."""
+def reinsch_penalty(u: np.ndarray) -> np.ndarray:
+    """K = Q R⁻¹ Qᵀ, so that gᵀ K g = ∫ g''² of the natural spline through (u, g).
+
+    Parameters
+    ----------
+    u : (n,) sorted distinct knots, n ≥ 3
+
+    Returns
+    -------
+    (n, n) symmetric positive semi-definite matrix (null space: constant and linear functions).
+    """
     n = u.size
     h = np.diff(u)
     q = np.zeros((n, n - 2))
@@ -37,7 +49,51 @@ def _reinsch_penalty(u: np.ndarray) -> np.ndarray:
         r[j, j] = (h[j] + h[j + 1]) / 3.0
         if j + 1 < n - 2:
             r[j, j + 1] = r[j + 1, j] = h[j + 1] / 6.0
-    return q @ np.linalg.solve(r, q.T)
+    k = q @ np.linalg.solve(r, q.T)
+    return 0.5 * (k + k.T)
+
+
+def natural_spline_basis(knots: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Matrix B with B @ values = natural cubic spline through (knots, values) at ``u``, continued
+    linearly beyond the knots."""
+    u = np.atleast_1d(np.asarray(u, dtype=float))
+    spline = CubicSpline(knots, np.eye(knots.size), bc_type="natural")
+    inside = np.clip(u, knots[0], knots[-1])
+    return spline(inside) + spline(inside, 1) * (u - inside)[:, None]
+
+
+def curvature_column(u: np.ndarray, lo: float = -1.0, hi: float = 1.0) -> np.ndarray:
+    """u² inside [lo, hi], continued linearly beyond (the unpenalised end-curvature term)."""
+    u = np.asarray(u, dtype=float)
+    inside = np.clip(u, lo, hi)
+    return inside**2 + 2.0 * inside * (u - inside)
+
+
+class PartialSpline:
+    """Smoother of min Σ w (y − s − c·t)² + λ sᵀ K s: natural-spline knot values s, free end-curvature
+    coefficient c of t = ``curvature_column(u)``, for any λ from one eigendecomposition.
+
+    Parameters
+    ----------
+    u : (n,) sorted distinct knots
+    w : (n,) positive weights (normalised here to mean 1)
+    """
+
+    def __init__(self, u: np.ndarray, w: np.ndarray):
+        self.w = np.asarray(w, dtype=float) / np.mean(w)
+        sw = np.sqrt(self.w)
+        d, vecs = np.linalg.eigh(reinsch_penalty(u) / np.outer(sw, sw))
+        self.eigenvalues = np.clip(d, 0.0, None)
+        self.left, self.right = vecs / sw[:, None], vecs.T * sw[None, :]  # W^-½ V and Vᵀ W^½
+        self.t = curvature_column(u)
+
+    def smoother(self, lam: float) -> tuple[np.ndarray, np.ndarray]:
+        """Hat matrix (fitted = hat @ y) and the (n + 1, n) map from y to [s; c]."""
+        plain = (self.left * (1.0 / (1.0 + lam * self.eigenvalues))) @ self.right
+        m_t = self.w * (self.t - plain @ self.t)  # M t with M = W (I − S), symmetric
+        c_row = m_t / max(float(self.t @ m_t), 1e-300)
+        s_map = plain - np.outer(plain @ self.t, c_row)
+        return s_map + np.outer(self.t, c_row), np.vstack([s_map, c_row])
 
 
 @dataclass(frozen=True)
@@ -45,66 +101,89 @@ class SmoothingFit:
     """Fitted values at the knots plus what the λ search found."""
 
     fitted: np.ndarray
+    curvature: float
     lam: float
     effective_dof: float
     criterion_value: float
 
 
-def smooth(
-    u: np.ndarray, y: np.ndarray, w: np.ndarray, criterion: str = "gcv", lam: float | None = None
-) -> SmoothingFit:
-    """Weighted cubic smoothing spline values at sorted, distinct abscissae ``u``.
+def smooth(u: np.ndarray, y: np.ndarray, w: np.ndarray, criterion: str = "gcv", lam: float | None = None,
+           end_curvature: bool = False) -> SmoothingFit:
+    """Weighted cubic smoothing spline at sorted, distinct abscissae ``u``.
 
     Parameters
     ----------
-    u : (n,) sorted distinct abscissae (best scaled to about unit span)
-    y : (n,) values; w : (n,) positive weights (e.g. the number of repeats averaged)
-    criterion : "gcv" (generalised cross-validation) or "loo" (exact leave-one-out, i.e. leave one
-        calibration point out when ``y`` are point means)
-    lam : fixed smoothing parameter; searched when None.
+    u : (n,) sorted distinct abscissae (best scaled to [−1, 1])
+    y : (n,) values
+    w : (n,) positive weights (e.g. the number of repeats averaged)
+    criterion : "gcv" (generalised cross-validation) or "loo" (exact leave-one-out over the
+        interior points, i.e. leave one calibration point out when ``y`` are point means)
+    lam : fixed smoothing parameter; searched when None
+    end_curvature : add the unpenalised u² term (curvature at the ends, see the module text)
+
+    Returns
+    -------
+    SmoothingFit
+        ``fitted`` are the natural-spline values s at the knots (the u² term excluded).
     """
     n = u.size
     if n < 3:
         raise ValueError(f"a smoothing spline needs at least 3 distinct points, got {n}")
     if criterion not in ("gcv", "loo"):
         raise ValueError(f"criterion must be 'gcv' or 'loo', got {criterion!r}")
+    w = w / w.mean()
     sw = np.sqrt(w)
-    a = _reinsch_penalty(u) / np.outer(sw, sw)
-    d, vecs = np.linalg.eigh(0.5 * (a + a.T))
+    penalty = reinsch_penalty(u)
+    # one eigendecomposition serves every λ: S(λ) = W^-½ V diag(1/(1 + λd)) Vᵀ W^½
+    d, vecs = np.linalg.eigh(penalty / np.outer(sw, sw))
     d = np.clip(d, 0.0, None)
-    z = vecs.T @ (sw * y)
+    z_y = vecs.T @ (sw * y)
+    z_t = vecs.T @ (sw * curvature_column(u)) if end_curvature else np.zeros(n)
+    interior = np.arange(n)[1:-1]
 
-    def evaluate(log_lam: float):
-        shrink = 1.0 / (1.0 + np.exp(log_lam) * d)
-        fitted = (vecs @ (shrink * z)) / sw
-        resid = y - fitted
+    def fits(log_lams: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Criterion, spline values, curvature and dof for each λ (rows), all at once."""
+        shrink = 1.0 / (1.0 + np.exp(log_lams)[:, None] * d[None, :])
+        leverage = shrink @ (vecs**2).T
+        dof = shrink.sum(axis=1)
+        curvature = np.zeros(log_lams.size)
+        if end_curvature:  # profile out the unpenalised u² coefficient (partial spline)
+            rest = (1.0 - shrink) * z_t[None, :]
+            norm = np.maximum(np.sum(rest * z_t[None, :], axis=1), 1e-300)
+            curvature = np.sum(rest * z_y[None, :], axis=1) / norm
+            along = rest @ vecs.T
+            leverage = leverage + along**2 / norm[:, None]
+            dof = dof + np.sum(along**2, axis=1) / norm
+        values = (shrink * (z_y[None, :] - curvature[:, None] * z_t[None, :])) @ vecs.T / sw[None, :]
+        fitted = values + curvature[:, None] * curvature_column(u)[None, :]
+        resid = y[None, :] - fitted
         if criterion == "gcv":
-            rss = np.sum(w * resid**2)
-            value = (rss / n) / (1.0 - shrink.sum() / n) ** 2
+            value = np.sum(w * resid**2, axis=1) / n / np.maximum(1.0 - dof / n, 1e-9) ** 2
         else:
-            leverage = np.einsum("ij,j,ij->i", vecs, shrink, vecs)
-            value = np.sum(w * (resid / np.maximum(1.0 - leverage, 1e-12)) ** 2) / np.sum(w)
-        return value, fitted, shrink.sum()
+            loo = resid / np.maximum(1.0 - leverage, 1e-12)
+            value = np.mean(loo[:, interior] ** 2, axis=1)
+        return value, values, curvature, dof, fitted
 
     if lam is None:
-        positive = d[d > 1e-12 * d.max()]
+        positive = d[d > 1e-9 * d.max()]
         grid = np.linspace(np.log(1e-6 / positive.max()), np.log(1e6 / positive.min()), 121)
-        values = np.array([evaluate(g)[0] for g in grid])
+        values = fits(grid)[0]
         best = int(np.argmin(values))
         lo, hi = grid[max(best - 1, 0)], grid[min(best + 1, grid.size - 1)]
-        res = minimize_scalar(lambda g: evaluate(g)[0], bounds=(lo, hi), method="bounded", options={"xatol": 1e-3})
+        res = minimize_scalar(lambda g: float(fits(np.array([g]))[0][0]), bounds=(lo, hi), method="bounded",
+                              options={"xatol": 1e-3})
         log_lam = float(res.x) if res.fun <= values[best] else float(grid[best])
     else:
         log_lam = float(np.log(lam))
-    value, fitted, dof = evaluate(log_lam)
-    return SmoothingFit(fitted, float(np.exp(log_lam)), float(dof), float(value))
+    value, spline_values, curvature, dof, _ = fits(np.array([log_lam]))
+    return SmoothingFit(spline_values[0], float(curvature[0]), float(np.exp(log_lam)), float(dof[0]), float(value[0]))
 
 
 @dataclass(frozen=True)
 class SplineCurve:
-    """Polynomial trend plus natural cubic spline through the smoothed residual values.
+    """Polynomial trend plus natural cubic spline through the smoothed values (plus c·u²).
 
-    Beyond the knots the curve continues linearly (the natural spline's own extension).
+    Beyond the knots the curve continues linearly.
     """
 
     center: float
@@ -114,19 +193,25 @@ class SplineCurve:
     values: np.ndarray
     lam: float
     effective_dof: float
+    curvature: float = 0.0
 
     kind = "smoothing_spline"
 
-    def _u(self, x):
+    def _u(self, x: np.ndarray) -> np.ndarray:
         return (np.asarray(x, dtype=float) - self.center) / self.half_span
 
-    def predict(self, x):
-        u = self._u(x)
-        spline = CubicSpline(self.knots_u, self.values, bc_type="natural", extrapolate=True)
-        lo, hi = self.knots_u[0], self.knots_u[-1]
+    @cached_property
+    def _spline(self) -> CubicSpline:
+        return CubicSpline(self.knots_u, self.values, bc_type="natural")
+
+    def predict(self, x: np.ndarray) -> np.ndarray:
+        x = np.asarray(x, dtype=float)
+        u = self._u(x).ravel()
+        lo, hi = float(self.knots_u[0]), float(self.knots_u[-1])
         inside = np.clip(u, lo, hi)
-        out = spline(inside) + spline(inside, 1) * (u - inside)
-        return np.polyval(self.trend, u) + out
+        trend = np.polyval(self.trend, inside) + np.polyval(np.polyder(self.trend), inside) * (u - inside)
+        spline = self._spline(inside) + self._spline(inside, 1) * (u - inside)
+        return (trend + spline + self.curvature * curvature_column(u, lo, hi)).reshape(x.shape)
 
     def to_dict(self) -> dict:
         return {
@@ -138,25 +223,33 @@ class SplineCurve:
             "values": self.values.tolist(),
             "lam": self.lam,
             "effective_dof": self.effective_dof,
+            "curvature": self.curvature,
         }
 
     @classmethod
     def from_dict(cls, d: dict) -> SplineCurve:
-        return cls(
-            float(d["center"]),
-            float(d["half_span"]),
-            np.asarray(d["trend"], dtype=float),
-            np.asarray(d["knots_u"], dtype=float),
-            np.asarray(d["values"], dtype=float),
-            float(d["lam"]),
-            float(d["effective_dof"]),
-        )
+        return cls(float(d["center"]), float(d["half_span"]), np.asarray(d["trend"], dtype=float),
+                   np.asarray(d["knots_u"], dtype=float), np.asarray(d["values"], dtype=float), float(d["lam"]),
+                   float(d["effective_dof"]), float(d.get("curvature", 0.0)))
 
 
-def fit_spline_curve(
-    x: np.ndarray, y: np.ndarray, w: np.ndarray | None = None, *, criterion: str = "gcv", trend_degree: int = 0
-) -> SplineCurve:
-    """Fit the CSF curve to point means (x sorted or not; distinct)."""
+def fit_spline_curve(x: np.ndarray, y: np.ndarray, w: np.ndarray | None = None, *, criterion: str = "gcv",
+                     trend_degree: int = 0, end_curvature: bool = False, lam: float | None = None) -> SplineCurve:
+    """Fit the CSF curve to point means.
+
+    Parameters
+    ----------
+    x, y : (n,) distinct abscissae (any order) and values
+    w : (n,) weights (repeat counts); default equal
+    criterion : "gcv" or "loo" (see ``smooth``)
+    trend_degree : polynomial fitted first by weighted least squares (0: none)
+    end_curvature : let the ends bend (unpenalised u² term)
+    lam : fixed smoothing λ (for u = x scaled to [−1, 1] and weights of mean 1); None searches it
+
+    Returns
+    -------
+    SplineCurve
+    """
     x = np.asarray(x, dtype=float)
     y = np.asarray(y, dtype=float)
     w = np.ones_like(x) if w is None else np.asarray(w, dtype=float)
@@ -169,5 +262,5 @@ def fit_spline_curve(
     trend = np.zeros(1)
     if trend_degree > 0:
         trend = np.polyfit(u, y, trend_degree, w=np.sqrt(w))
-    fit = smooth(u, y - np.polyval(trend, u), w, criterion)
-    return SplineCurve(center, half_span, trend, u, fit.fitted, fit.lam, fit.effective_dof)
+    fit = smooth(u, y - np.polyval(trend, u), w, criterion, lam=lam, end_curvature=end_curvature)
+    return SplineCurve(center, half_span, trend, u, fit.fitted, fit.lam, fit.effective_dof, fit.curvature)
