@@ -9,7 +9,6 @@ fake with the same methods.
 from __future__ import annotations
 
 import dataclasses
-import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -198,7 +197,7 @@ class InstrumentScience:
                                       date=provenance.get("date", "")))
         curves = {}
         for component, d in prepared.items():
-            corrected = np.array([record.correct(component, float(x))[0] for x in d.measured])
+            corrected = record.correct(component, d.measured).corrected
             curves[component] = {"measured": d.measured.tolist(), "reference": d.reference.tolist(),
                                  "error_before": (d.measured - d.reference).tolist(),
                                  "error_after": (corrected - d.reference).tolist(), "group": d.group.tolist()}
@@ -220,8 +219,5 @@ class RecordCompensator:
         self.record_id = record.content_id
 
     def correct(self, pose: np.ndarray) -> tuple[np.ndarray, list[str]]:
-        with warnings.catch_warnings():  # out-of-range corrections come back as flags
-            warnings.simplefilter("ignore")
-            values, flags = self.record.correct_pose(dict(zip(COMPONENTS, (float(v) for v in pose))))
-        out_of_range = [f"{k} outside the calibrated range" for k, flagged in dict(flags).items() if flagged]
-        return np.array([values[k] for k in COMPONENTS], dtype=float), out_of_range
+        result = self.record.correct_pose(np.asarray(pose, dtype=float))
+        return result.corrected, result.messages()

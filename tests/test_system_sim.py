@@ -73,7 +73,7 @@ def test_displacement_calibration_measures_real_errors_and_fits_them(cell, tmp_p
         # noise floor: the scatter of repeats at one point (per-frame speckle noise, ~1-2 µm), which
         # no compensation can remove. Each group keeps its own datum offset in the corrected data,
         # so compare the shapes within groups.
-        residual = np.array([record.correct(axis, m)[0] for m in measured]) - reference
+        residual = record.correct(axis, measured).corrected - reference
         for g in np.unique(groups):
             residual[groups == g] -= residual[groups == g].mean()
         cells = [raw[(groups == g) & (points == k)] for g in np.unique(groups) for k in np.unique(points)]
