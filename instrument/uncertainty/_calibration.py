@@ -4,7 +4,8 @@ The reported figure is r = RMS(corrected − reference) over the held-out observ
 component. The reference has its own error: per-reading noise (independent per observation) and
 a scale error (common, times the reference value from its datum). Measured against a noisy
 reference, r is inflated (r² ≈ r_true² + σ_ref²); the Monte Carlo adds the reference's errors
-once more, and, as for the ISO figures, the mean shift estimates that bias and the spread gives u.
+once more, and, as for the ISO figures (``_summary``), one step back in the square removes that
+bias (√(2·r² − mean r*²)) and the spread of r*² gives U.
 The sampling interval (which calibration points happened to be measured) is a cluster bootstrap
 over the calibration points, percentile, seeded.
 """
@@ -20,6 +21,7 @@ from instrument.uncertainty._budget import COMPONENTS, Distribution
 from instrument.uncertainty._errors import UncertaintyError
 from instrument.uncertainty._propagate import FigureUncertainty
 from instrument.uncertainty._sampling import unit_draws
+from instrument.uncertainty._summary import contribution, summarise
 
 BOOTSTRAP_SAMPLES = 2000
 
@@ -84,26 +86,24 @@ def calibration_residual_uncertainty(
         return np.sqrt(np.mean(shifted**2, axis=1))
 
     samples = simulate(reference_noise, reference_scale, np.random.default_rng(seed))
-    contributions = {
-        "reference noise": float(np.std(simulate(reference_noise, 0.0, np.random.default_rng([seed, 1])), ddof=1)),
-        "reference scale": float(np.std(simulate(0.0, reference_scale, np.random.default_rng([seed, 2])), ddof=1)),
-    }
-    u = float(np.std(samples, ddof=1))
-    bias = float(np.mean(samples) - value)
-    estimate = max(value - bias, 0.0)
     probability = float(special.erf(coverage_factor / math.sqrt(2.0)))
-    tail = (1.0 - probability) / 2.0
-    low, high = np.quantile(2.0 * estimate - (samples - bias), [tail, 1.0 - tail])
+    summary = summarise(value, samples, coverage_factor, probability, squared=True)
+    contributions = {
+        name: contribution(summary.estimate, simulate(noise, scale, np.random.default_rng([seed, index])),
+                           coverage_factor, squared=True)
+        for index, (name, noise, scale) in enumerate((("reference noise", reference_noise, 0.0),
+                                                      ("reference scale", 0.0, reference_scale)), start=1)
+    }
     true = None
     if true_residuals is not None:
         true = float(np.sqrt(np.mean(_vector(true_residuals, "true_residuals", len(r)) ** 2)))
     return FigureUncertainty(
-        name=f"residual_rms_{component}", unit="m" if component in "xyz" else "rad", value=estimate,
-        expanded_uncertainty=coverage_factor * u, coverage_factor=float(coverage_factor), standard_uncertainty=u,
-        uncorrected_value=value, noise_bias=bias, bias_corrected=True, contributions=contributions,
-        confidence_interval=_cluster_interval(r, labels, confidence, seed), mc_interval=(max(float(low), 0.0),
-                                                                                         max(float(high), 0.0)),
-        characteristic=estimate if characteristic is None else float(characteristic), true=true)
+        name=f"residual_rms_{component}", unit="m" if component in "xyz" else "rad", value=summary.estimate,
+        expanded_uncertainty=summary.expanded_uncertainty, coverage_factor=float(coverage_factor),
+        standard_uncertainty=summary.standard_uncertainty, uncorrected_value=value, noise_bias=summary.bias,
+        bias_corrected=True, contributions=contributions,
+        confidence_interval=_cluster_interval(r, labels, confidence, seed), mc_interval=summary.interval,
+        characteristic=summary.estimate if characteristic is None else float(characteristic), true=true)
 
 
 def _cluster_interval(r: np.ndarray, labels: np.ndarray, confidence: float, seed: int) -> tuple[float, float] | None:

@@ -3,13 +3,13 @@
 ``iso_uncertainty`` draws the budget's errors (``_sampling``), applies them to the measured poses,
 recomputes every figure with ``instrument.iso9283`` and summarises each figure's distribution:
 
-- u: the standard deviation of the figure over the draws;
-- the noise bias: the draws' mean minus the measured value. Adding the errors once more moves a
-  figure as the errors moved it in the first place (per-pose noise inflates a spread by the same
-  amount again: the first step of SIMEX, Cook & Stefanski 1994), so the measured value minus this
-  bias is the bias-corrected estimate (GUM 3.2.4: correct recognised systematic effects);
-- U = k·u with k = 2; with ``correct_bias=False`` the value stays the ISO formula's and the bias
-  is carried in U instead: U = k·u + |bias| (GUM F.2.4.5);
+- the estimate, u and U from the draws (``_summary``): the draws' mean shift is the measured
+  value's noise bias (adding the errors once more moves a figure as the errors moved it in the
+  first place), so one extrapolation step back removes it — linearly for signed figures, in the
+  square for spreads and distances, where noise adds variance (SIMEX, Cook & Stefanski 1994).
+  The corrected value is the estimate (GUM 3.2.4: correct recognised systematic effects), U = k·u
+  with k = 2; with ``correct_bias=False`` the value stays the ISO formula's and the bias is
+  carried in U instead: U = k·u + |bias| (GUM F.2.4.5);
 - per-term contributions: u of the figure with that term alone (a separate, smaller Monte Carlo);
 - the 25 % rule: U ≤ 0.25 × the characteristic (the figure's own magnitude, or a caller's value
   such as the robot's specified RP), flagged per figure.
@@ -40,6 +40,7 @@ from instrument.uncertainty._figures import (
 )
 from instrument.uncertainty._rotation import as_transform, decompose
 from instrument.uncertainty._sampling import PoseSet, perturbed_tools
+from instrument.uncertainty._summary import contribution, summarise
 
 RULE_FRACTION = 0.25
 METHOD = "GUM (JCGM 100) budget, Monte Carlo propagation (JCGM 101/102) through instrument.iso9283"
@@ -246,16 +247,15 @@ def iso_uncertainty(
     baseline = _evaluate_all(evaluators, measured)
     rng = np.random.default_rng(seed)
     samples = _monte_carlo(evaluators, sets, budget, transform, draws, rng)
-    per_term: dict[str, dict[tuple[str, str, str], float]] = {}
+    per_term: dict[str, dict[tuple[str, str, str], np.ndarray]] = {}
     if contributions:
         extra = _count(contribution_draws, "contribution_draws", 50) if contribution_draws else max(200, draws // 4)
         for index, term in enumerate(budget.terms):
             if not term.active:
-                per_term[term.name] = dict.fromkeys(baseline, 0.0)
+                per_term[term.name] = {key: np.full(extra, value) for key, value in baseline.items()}
                 continue
-            term_samples = _monte_carlo(evaluators, sets, budget.only(term.name), transform, extra,
-                                        np.random.default_rng([seed, index + 1]))
-            per_term[term.name] = {key: float(np.std(v, ddof=1)) for key, v in term_samples.items()}
+            per_term[term.name] = _monte_carlo(evaluators, sets, budget.only(term.name), transform, extra,
+                                               np.random.default_rng([seed, index + 1]))
     truth = _truth_values(run, transform, evaluators, sets)
     intervals = _intervals(evaluators, measured, confidence)
     characteristics = dict(characteristics or {})
@@ -276,29 +276,27 @@ def iso_uncertainty(
 # -- the pieces -----------------------------------------------------------------------------------
 
 
-def _summarise(name, value, samples, k, probability, correct_bias, contributions, interval, characteristic, true):
+def _summarise(name, value, samples, k, probability, correct_bias, term_samples, interval, characteristic, true):
     kind = kind_of(name)
-    u = float(np.std(samples, ddof=1))
-    bias = float(np.mean(samples) - value)
-    estimate = value - bias if correct_bias else value
-    # The distribution of the true value given the measured one: the draws mirrored about the value.
-    mirrored = 2.0 * estimate - (samples - bias if correct_bias else samples)
-    tail = (1.0 - probability) / 2.0
-    low, high = (float(v) for v in np.quantile(mirrored, [tail, 1.0 - tail]))
-    expanded = k * u if correct_bias else k * u + abs(bias)
+    squared = kind is Kind.NON_NEGATIVE
+    summary = summarise(value, samples, k, probability, squared=squared)
+    contributions = {t: contribution(summary.estimate, s, k, squared=squared) for t, s in term_samples.items()}
+    estimate = summary.estimate if correct_bias else value
+    bias = summary.bias
+    expanded = summary.expanded_uncertainty if correct_bias else summary.expanded_uncertainty + abs(bias)
+    low, high = summary.interval
     if kind is Kind.ABSOLUTE:  # propagated signed, reported as a magnitude
-        bias = abs(value) - abs(value - bias)
+        bias = abs(value) - abs(summary.estimate)
         value, estimate = abs(value), abs(estimate)
         low, high = (0.0, max(-low, high)) if low < 0 < high else (min(abs(low), abs(high)), max(abs(low), abs(high)))
         true = None if true is None else abs(true)
-    elif kind is Kind.NON_NEGATIVE:
-        estimate, low, high = max(estimate, 0.0), max(low, 0.0), max(high, 0.0)
     magnitude = abs(estimate) if characteristic is None else float(characteristic)
     return FigureUncertainty(
         name=name, unit=unit_of(name), value=float(estimate), expanded_uncertainty=float(expanded),
-        coverage_factor=float(k), standard_uncertainty=u, uncorrected_value=float(value), noise_bias=float(bias),
+        coverage_factor=float(k), standard_uncertainty=summary.standard_uncertainty,
+        uncorrected_value=float(value), noise_bias=float(bias),
         bias_corrected=bool(correct_bias), contributions=contributions, confidence_interval=interval,
-        mc_interval=(low, high), characteristic=magnitude, true=None if true is None else float(true))
+        mc_interval=(float(low), float(high)), characteristic=magnitude, true=None if true is None else float(true))
 
 
 def _monte_carlo(evaluators, sets, budget, transform, draws, rng) -> dict[tuple[str, str, str], np.ndarray]:
