@@ -53,6 +53,7 @@ class CoverageRow:
     coverage_carried: float
     tightness_carried: float
     mean_error_carried: float
+    median_expanded_carried: float
 
     @property
     def in_target(self) -> bool:
@@ -135,5 +136,6 @@ def coverage_table(results: Sequence[IsoUncertainty]) -> CoverageTable:
             mean_error=float(error.mean()), rms_error=rms, median_expanded=float(np.median(expanded)),
             coverage_carried=float(np.mean(np.abs(error_carried) <= expanded_carried)),
             tightness_carried=float(np.median(expanded_carried) / rms_carried) if rms_carried > 0 else math.inf,
-            mean_error_carried=float(error_carried.mean())))
+            mean_error_carried=float(error_carried.mean()),
+            median_expanded_carried=float(np.median(expanded_carried))))
     return CoverageTable(tuple(rows), len(results))
