@@ -284,7 +284,7 @@ def test_outside_the_validity_range_is_flagged_and_costs_uncertainty():
 def test_export_shape():
     run = scatter_run()
     run = IsoRun(run.measured, run.commanded, truth=run.measured)
-    budget = only(frame_noise_from_calibration({c: 1e-6 for c in "xyzabc"}, 90), term("offset", "run", [2e-6] * 6))
+    budget = only(frame_noise_from_calibration(dict.fromkeys("xyzabc", 1e-06), 90), term("offset", "run", [2e-6] * 6))
     result = iso_uncertainty(run, budget, draws=100, distance_pairs=[("P2", "P4")], drift_cycles=10,
                              contribution_draws=60)
     exported = json.loads(json.dumps(result.to_dict()))  # plain JSON, no numpy types
@@ -319,7 +319,7 @@ def test_the_25_percent_rule_is_flagged_per_figure():
 
 def test_results_are_seeded():
     run = scatter_run(n=8)
-    budget = only(frame_noise_from_calibration({c: 1e-6 for c in "xyzabc"}, 90))
+    budget = only(frame_noise_from_calibration(dict.fromkeys("xyzabc", 1e-06), 90))
     first = iso_uncertainty(run, budget, draws=80, seed=3, contribution_draws=50).to_dict()
     assert iso_uncertainty(run, budget, draws=80, seed=3, contribution_draws=50).to_dict() == first
     assert iso_uncertainty(run, budget, draws=80, seed=4, contribution_draws=50).to_dict() != first
