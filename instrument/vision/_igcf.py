@@ -195,23 +195,27 @@ def igcf_band(band, valid, background, saturation, half_window, min_amplitude):
     level *= inv_scale[None, :]
     positive = level > 0
     use = positive if use is None else use & positive
-    level[~use] = 0.0
-    weight = level * level
-    level[~use] = 1.0  # ln 1 = 0: unused pixels add nothing (their weight is 0 anyway)
-    weighted_log = weight * np.log(level)
+    # weight = I² and weight·ln I side by side, so one matrix product gives all eight moment sums
+    window_rows = level.shape[0]
+    sums_input = np.empty((window_rows, 2 * n), np.float32)
+    weight, weighted_log = sums_input[:, :n], sums_input[:, n:]
+    np.copyto(level, 1.0, where=~use)  # ln 1 = 0 and the weight below is 0: unused pixels add nothing
+    np.multiply(level, level, out=weight)
+    weight *= use
+    np.log(level, out=weighted_log)
+    weighted_log *= weight
 
-    powers = _powers(h_max)
-    s0, s1, s2, s3, s4 = (powers @ weight).astype(float)  # each (N,)
-    z0, z1, z2 = (powers[:3] @ weighted_log).astype(float)
+    sums = (_powers(h_max) @ sums_input).astype(float)
+    s0, s1, s2, s3, s4 = sums[:, :n]
+    z0, z1, z2 = sums[:3, n:]
     n_used = use.view(np.uint8).sum(axis=0, dtype=np.uint8)
-    # Cramer's rule on the 3×3 normal equations; centre = −a1/(2·a2) needs only det1, det2, det
+    # Cramer's rule on the 3×3 normal equations; centre = −a1/(2·a2) needs only det1 and det2 (the
+    # determinant itself is positive: a weighted Gram matrix of ≥ 3 distinct points)
     m2, m3, mz = s1 * s4 - s3 * s2, s1 * s3 - s2 * s2, s1 * z2 - z1 * s2  # shared minors
-    det = s0 * (s2 * s4 - s3 * s3) - s1 * m2 + s2 * m3
     det1 = s0 * (z1 * s4 - s3 * z2) - z0 * m2 + s2 * mz
     det2 = s0 * (s2 * z2 - z1 * s3) - s1 * mz + z0 * m3
-    fittable = (n_used >= 3) & (det > 0) & (det2 < 0)  # det2/det = a2 < 0: a peak, not a dip
-    safe_det2 = np.where(fittable, det2, -1.0)
-    offset = -det1 / (2.0 * safe_det2)
+    fittable = (n_used >= 3) & (det2 < 0)  # det2/det = a2 < 0: a peak, not a dip
+    offset = det1 / (-2.0 * np.where(fittable, det2, -1.0))
     ok = contained & fittable & (np.abs(offset) <= h_sec + 0.5)
     ok &= amplitude >= np.maximum(min_amplitude, np.finfo(float).tiny)
     center = np.where(ok, coarse + offset, np.nan)
