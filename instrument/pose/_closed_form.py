@@ -14,6 +14,7 @@ Derived here from the geometry (the printed eq. 14 has garbled subscripts):
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 
 import numpy as np
@@ -42,11 +43,12 @@ def cross_turn(cross: ScreenCross, geometry: Geometry) -> float:
     The mean of both stripes' signed angles from their nominal directions (the paper's averaging).
     """
     nominal = nominal_directions(geometry.screens[cross.screen])
-    angles = []
+    total = 0.0
     for fan in FANS[cross.screen]:
-        n0, d = nominal[fan], cross.lines[fan].direction
-        angles.append(np.arctan2(n0[0] * d[1] - n0[1] * d[0], n0 @ d))
-    return float(np.mean(angles))
+        n0, n1 = float(nominal[fan][0]), float(nominal[fan][1])
+        d0, d1 = (float(c) for c in cross.lines[fan].direction)
+        total += math.atan2(n0 * d1 - n1 * d0, n0 * d0 + n1 * d1)
+    return total / 2.0
 
 
 def small_motion_pose(measurements: Mapping[str, object], geometry: Geometry, *, lever: str = "paper") -> Pose:
@@ -75,21 +77,21 @@ def small_motion_pose(measurements: Mapping[str, object], geometry: Geometry, *,
     estimates: dict[int, list[float]] = {0: [], 1: [], 2: []}
     for name in SCREEN_NAMES:
         k = AXIS_INDEX[name]
-        beam = rotation[:, k]
+        beam = rotation[:, k].tolist()
         if abs(beam[k]) < 1e-6:
             raise PoseError(f"screen {name!r}: the beam runs parallel to the screen")
-        hit = crosses[name].center_m
+        hit = crosses[name].center_m.tolist()
         for i in range(3):
             if i == k:
                 continue
             slope = beam[i] / beam[k]  # direction cosine ratio r_ik / r_kk
             estimates[i].append(hit[i] - hit[k] * slope)
-            row = np.zeros(3)
+            row = [0.0, 0.0, 0.0]
             row[i], row[k] = 1.0, -slope
             rows.append(row)
             rhs.append(hit[i] - hit[k] * slope)
     if lever == "paper":
-        translation = np.array([np.mean(estimates[i]) for i in range(3)])
+        translation = np.array([sum(estimates[i]) / len(estimates[i]) for i in range(3)])
     else:
         design = np.array(rows)
         translation = np.linalg.solve(
