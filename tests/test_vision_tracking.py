@@ -9,7 +9,7 @@ back to the full search — and say why — when the prior is lost.
 import numpy as np
 import pytest
 
-from instrument.vision import CrossNotFound, locate_cross
+from instrument.vision import CrossNotFound, locate_cross, locate_crosses
 from tests.synthetic_cross import render_cross
 
 SHAPE = (480, 640)  # rows, cols
@@ -116,3 +116,35 @@ def test_bad_prior_and_search_band():
     for bad in (2, 1000, 10.5):
         with pytest.raises(ValueError, match="search_px"):
             locate_cross(img, prior=prior, search_px=bad)
+
+
+def test_several_frames_at_once_give_what_each_frame_gives_alone():
+    """locate_crosses: tracked, full-search, fallback and failing frames in one call."""
+    twelve_bit = dict(dtype=np.uint16, saturation=4095, amplitude=3200.0, background=150.0, noise=32.0)
+    priors = {
+        "tracked": locate_cross(_frame((300.0, 250.0), seed=20)[0]),
+        "lost": locate_cross(_frame((320.0, 240.0), seed=21)[0]),
+        "12-bit": locate_cross(_frame((200.0, 300.0), seed=22, **twelve_bit)[0], saturation=4095),
+    }
+    images = {
+        "tracked": _frame((304.0, 247.0), seed=23)[0],
+        "lost": _frame((400.0, 190.0), seed=24)[0],
+        "12-bit": _frame((203.0, 301.0), seed=25, **twelve_bit)[0],
+        "full": _frame((250.0, 260.0), seed=26)[0],
+        "none": _frame((250.0, 260.0), seed=27, horizontal=False, vertical=False)[0],
+    }
+    saturation = {"12-bit": 4095}
+    together = locate_crosses(images, saturation, priors)
+    assert list(together) == list(images)
+    for name, img in images.items():
+        try:
+            alone = locate_cross(img, saturation.get(name), priors.get(name))
+        except CrossNotFound as exc:
+            assert isinstance(together[name], CrossNotFound) and str(together[name]) == str(exc)
+            continue
+        got = together[name]
+        assert got.search == alone.search and got.lost_reason == alone.lost_reason
+        np.testing.assert_allclose(got.center, alone.center, atol=1e-9)
+        assert got.angle == pytest.approx(alone.angle, abs=1e-12)
+    assert [together[n].search for n in ("tracked", "lost", "12-bit", "full")] == [
+        "tracked", "fallback", "tracked", "full"]

@@ -22,7 +22,7 @@ import numpy as np
 
 from instrument.pose import DEFAULT_MAX_RESIDUAL_RMS, Geometry, Pose, PoseError, solve_pose, tool_pose
 from instrument.stream._clock import ClockModel
-from instrument.vision import CrossMeasurement, CrossNotFound, locate_cross
+from instrument.vision import CrossMeasurement, CrossNotFound, locate_crosses
 
 SCREENS = ("x", "y", "z")
 DEFAULT_MAX_TIMESTAMP_SPREAD = 1e-3  # s: three frames of one trigger are stamped within this
@@ -308,8 +308,8 @@ class PoseStreamer:
 
 class PoseTracker:
     """Images → poses: :class:`PoseStreamer` with the vision in front, each cross tracked from the
-    previous frame's (``locate_cross(image, prior=last)``; the full search when there is no prior
-    or it is lost).
+    previous frame's (``locate_crosses(images, priors=last)``; the full search when there is no
+    prior or it is lost).
 
     Parameters
     ----------
@@ -330,24 +330,30 @@ class PoseTracker:
         self.fallbacks = 0  # crosses a lost prior sent back to the full search
 
     def add(self, index: int, timestamps: Mapping[str, float], images: Mapping[str, np.ndarray]) -> PoseSample | Drop:
-        """Locate the three crosses of one trigger and solve its pose (see :meth:`PoseStreamer.add`)."""
+        """Locate the three crosses of one trigger and solve its pose (see :meth:`PoseStreamer.add`).
+
+        The three frames go through ``locate_crosses`` together (one fine stage for all six
+        stripes); a frame that is missing or shows no usable cross clears that camera's prior.
+        """
         crosses: dict[str, CrossMeasurement | None] = {}
         failures: dict[str, str] = {}
+        present = {s: images[s] for s in SCREENS if images.get(s) is not None}
         for s in SCREENS:
-            image = images.get(s)
-            if image is None:
+            if s not in present:
                 crosses[s], failures[s] = None, "no frame"
                 self._priors[s] = None
-                continue
-            try:
-                cross = locate_cross(image, self._saturation.get(s), self._priors[s], search_px=self.search_px)
-            except (CrossNotFound, ValueError) as exc:
-                crosses[s], failures[s] = None, str(exc)
+        try:
+            located = locate_crosses(present, self._saturation, self._priors, search_px=self.search_px)
+        except ValueError as exc:  # a malformed frame (shape, saturation): none of this trigger is usable
+            located = {s: CrossNotFound(f"unusable frame: {exc}") for s in present}
+        for s, result in located.items():
+            if isinstance(result, CrossNotFound):
+                crosses[s], failures[s] = None, str(result)
                 self._priors[s] = None
                 continue
-            if cross.search == "fallback":
+            if result.search == "fallback":
                 self.fallbacks += 1
-            crosses[s] = self._priors[s] = cross
+            crosses[s] = self._priors[s] = result
         return self.streamer.add(FrameTriple(index, timestamps, crosses, failures))
 
     def stream(self) -> PoseStream:

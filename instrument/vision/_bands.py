@@ -120,15 +120,18 @@ def _local_background(values, valid, fallback_bg):
 
 
 def section_centres(bands, saturation, half_window) -> list[SectionCentres]:
-    """IGCF of every section of both bands in one vectorised call (halves the per-call overhead)."""
+    """IGCF of every section of all ``bands`` in one vectorised call (the per-call overhead is paid
+    once, however many stripes — or frames — there are). ``saturation`` is one level, or one per band.
+    """
     sizes = [b.values.shape[1] for b in bands]
+    levels = list(saturation) if isinstance(saturation, (list, tuple)) else [saturation] * len(bands)
 
-    def per_section(values):  # one value per stripe → one per section
+    def per_section(values):  # one value per band → one per section
         return np.repeat(np.asarray(values, dtype=float), sizes)
 
     if half_window is None:  # each stripe's window from its own width
         half_window = per_section(
-            [half_window_for_width(stripe_fwhm(b.values, b.background, saturation)) for b in bands]
+            [half_window_for_width(stripe_fwhm(b.values, b.background, level)) for b, level in zip(bands, levels)]
         ).astype(np.intp)
     values = np.concatenate([b.values for b in bands], axis=1)
     valid = None
@@ -140,7 +143,7 @@ def section_centres(bands, saturation, half_window) -> list[SectionCentres]:
         values,
         valid,
         np.concatenate([b.background for b in bands]),
-        saturation,
+        levels[0] if len(set(levels)) == 1 else per_section(levels),
         half_window,
         per_section([MIN_AMPLITUDE_SIGMAS * b.noise for b in bands]),
     )
@@ -174,6 +177,50 @@ def _stripe_line(fit: StripeFit, vertical: bool) -> StripeLine:
     return StripeLine(point, direction, used, line.residual_rms, fit.saturated)
 
 
+class CrossJob(NamedTuple):
+    """One frame's two coarse lines, ready for the fine stage."""
+
+    flat: np.ndarray  # the C-contiguous frame, raveled
+    shape: tuple[int, int]
+    horizontal: CoarseLine
+    vertical: CoarseLine
+    fallback_bg: float
+    saturation: float
+    search: str = "full"
+
+
+def measure_crosses(jobs, half_window, min_sections) -> list[CrossMeasurement | CrossNotFound]:
+    """The sub-pixel crosses of several frames at once (one IGCF call for all their stripes).
+
+    Each entry of the result is the frame's ``CrossMeasurement``, or the ``CrossNotFound`` it
+    raised (returned, not raised, so that one bad frame does not cost the others their result).
+    """
+    results: list[CrossMeasurement | CrossNotFound | None] = [None] * len(jobs)
+    prepared = []  # (job number, job, [horizontal band, vertical band])
+    for number, job in enumerate(jobs):
+        try:
+            bands = [
+                extract_band(job.flat, job.shape, line, other, job.fallback_bg, min_sections)
+                for line, other in ((job.horizontal, job.vertical), (job.vertical, job.horizontal))
+            ]
+        except CrossNotFound as exc:
+            results[number] = exc
+            continue
+        prepared.append((number, job, bands))
+    if prepared:
+        bands = [band for _, _, pair in prepared for band in pair]
+        levels = [job.saturation for _, job, _ in prepared for _ in range(2)]
+        centres = section_centres(bands, levels, half_window)
+        for k, (number, job, pair) in enumerate(prepared):
+            try:
+                h_fit, v_fit = (fit_stripe(pair[i], centres[2 * k + i], min_sections) for i in range(2))
+            except CrossNotFound as exc:
+                results[number] = exc
+                continue
+            results[number] = _cross(h_fit, v_fit, job.search)
+    return results  # type: ignore[return-value]
+
+
 def measure_cross(
     flat,
     shape,
@@ -185,19 +232,20 @@ def measure_cross(
     min_sections: int,
     search: str = "full",
 ) -> CrossMeasurement:
-    """The sub-pixel cross from two coarse lines good to about a pixel (see the module docstring).
+    """The sub-pixel cross of one frame from two coarse lines good to about a pixel.
 
     ``flat`` is the C-contiguous frame raveled; raises ``CrossNotFound`` when a stripe has too few
     usable sections.
     """
-    bands = [
-        extract_band(flat, shape, line, other, fallback_bg, min_sections)
-        for line, other in ((horizontal, vertical), (vertical, horizontal))
-    ]
-    h_fit, v_fit = (
-        fit_stripe(band, centres, min_sections)
-        for band, centres in zip(bands, section_centres(bands, saturation, half_window))
-    )
+    job = CrossJob(flat, shape, horizontal, vertical, fallback_bg, saturation, search)
+    (result,) = measure_crosses([job], half_window, min_sections)
+    if isinstance(result, CrossNotFound):
+        raise result
+    return result
+
+
+def _cross(h_fit: StripeFit, v_fit: StripeFit, search: str) -> CrossMeasurement:
+    """Intersection and angles of the two fitted stripe lines (method.md §2.4)."""
     a_h, b_h = h_fit.line.intercept, h_fit.line.slope  # y = a_h + b_h·x
     a_v, b_v = v_fit.line.intercept, v_fit.line.slope  # x = a_v + b_v·y
     x = (a_v + b_v * a_h) / (1.0 - b_v * b_h)

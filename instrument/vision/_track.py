@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from instrument.vision._bands import kind, measure_cross
+from instrument.vision._bands import CrossJob, kind, measure_crosses
 from instrument.vision._detect import CoarseLine, _trimmed_line
 from instrument.vision._linefit import _median
 from instrument.vision._types import CrossMeasurement, CrossNotFound
@@ -128,8 +128,8 @@ def _reacquire(flat, shape, line: CoarseLine, other: CoarseLine, search: int) ->
     return CoarseLine(line.vertical, intercept, slope, n_found), background
 
 
-def track_cross(flat, shape, saturation, prior, half_window, min_sections, search) -> CrossMeasurement | str:
-    """The cross found near ``prior``'s lines, or the reason the prior is lost (a string)."""
+def reacquire(flat, shape, prior, search) -> tuple[CoarseLine, CoarseLine, float] | str:
+    """Both stripes near ``prior``'s lines: (horizontal, vertical, background), or why the prior is lost."""
     h_prior, v_prior = prior_lines(prior)
     horizontal = _reacquire(flat, shape, h_prior, v_prior, search)
     if isinstance(horizontal, str):
@@ -138,17 +138,29 @@ def track_cross(flat, shape, saturation, prior, half_window, min_sections, searc
     if isinstance(vertical, str):
         return vertical
     (h_line, h_background), (v_line, v_background) = horizontal, vertical
-    try:
-        measured = measure_cross(
-            flat, shape, h_line, v_line, 0.5 * (h_background + v_background), saturation, half_window,
-            min_sections, search="tracked",
-        )
-    except CrossNotFound as exc:
-        return f"tracked fit failed: {exc}"
+    return h_line, v_line, 0.5 * (h_background + v_background)
+
+
+def lost_after_fit(measured: CrossMeasurement | CrossNotFound, prior) -> str | None:
+    """Rule 3 of the module docstring: why the fine fit shows the prior lost, or None."""
+    if isinstance(measured, CrossNotFound):
+        return f"tracked fit failed: {measured}"
     for name, new, old in (
         ("near-horizontal", measured.horizontal, prior.horizontal),
         ("near-vertical", measured.vertical, prior.vertical),
     ):
         if new.sections < MIN_SECTIONS_KEPT * old.sections:
             return f"{name} stripe: only {new.sections} usable sections, the prior had {old.sections}"
-    return measured
+    return None
+
+
+def track_cross(flat, shape, saturation, prior, half_window, min_sections, search) -> CrossMeasurement | str:
+    """The cross found near ``prior``'s lines, or the reason the prior is lost (a string)."""
+    lines = reacquire(flat, shape, prior, search)
+    if isinstance(lines, str):
+        return lines
+    horizontal, vertical, background = lines
+    job = CrossJob(flat, shape, horizontal, vertical, background, saturation, "tracked")
+    (measured,) = measure_crosses([job], half_window, min_sections)
+    reason = lost_after_fit(measured, prior)
+    return reason if reason is not None else measured  # type: ignore[return-value]
