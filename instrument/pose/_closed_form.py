@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
+from typing import cast
 
 import numpy as np
 
@@ -33,7 +34,7 @@ def _as_crosses(measurements: Mapping[str, object], geometry: Geometry) -> dict[
     ):
         if set(measurements) != set(SCREEN_NAMES):
             return observe_crosses(measurements, geometry)  # raises the missing-screen error
-        return dict(measurements)
+        return {name: cast(ScreenCross, cross) for name, cross in measurements.items()}
     return observe_crosses(measurements, geometry)
 
 
