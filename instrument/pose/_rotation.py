@@ -173,3 +173,16 @@ class Pose:
         """Angle of the relative rotation between two poses, rad."""
         # Via the rotation vector: arccos of the trace loses precision below ~1e-8 rad.
         return float(Rotation.from_matrix(self.rotation.T @ other.rotation).magnitude())
+
+
+def trusted_pose(translation: np.ndarray, euler: np.ndarray) -> Pose:
+    """A ``Pose`` from finite (t, α, θ, γ) without ``__post_init__``'s checks (the solver's result:
+    a rotation built from Euler angles is orthonormal by construction). Package-internal."""
+    pose = object.__new__(Pose)
+    t = np.array(translation, dtype=float)
+    r = euler_to_matrix(float(euler[0]), float(euler[1]), float(euler[2]))
+    t.setflags(write=False)
+    r.setflags(write=False)
+    object.__setattr__(pose, "translation", t)
+    object.__setattr__(pose, "rotation", r)
+    return pose

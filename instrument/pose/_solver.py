@@ -23,13 +23,15 @@ from instrument.pose._closed_form import _as_crosses, small_motion_pose
 from instrument.pose._errors import InconsistentCrossesError, PoseError
 from instrument.pose._geometry import SCREEN_NAMES, Geometry
 from instrument.pose._lines import FAN_AXES, FANS, ScreenCross
-from instrument.pose._rotation import Pose
+from instrument.pose._rotation import Pose, trusted_pose
 
 DEFAULT_MAX_RESIDUAL_RMS = 100e-6  # m; noise-free calibrated data leaves ≪ 1 µm, pixel noise a few µm
 _MAX_ITERATIONS = 50
-_STEP_TOL = 1e-12  # rad, and × 0.1 m for the translation: far below anything measurable
+_STOP_STEP = 1e-9  # rad (translation per 0.1 m): a Gauss–Newton step this small is the last one
+_STEP_FLOOR = 1e-13  # any step this small (even a damped one): nothing left to gain
 _DIAGONAL = (np.arange(6), np.arange(6))
 _END_SIGNS = np.tile([-1.0, 1.0], 6)
+_ROWS = np.arange(12)[:, None]
 
 
 @dataclass(frozen=True)
@@ -74,8 +76,9 @@ class PoseEstimate:
 
 def _static_arrays(geometry: Geometry):
     """What depends on the station only: the fan of each stripe, and per residual (2 per stripe,
-    screens x, y, z, fans in FANS order) the screen's origin, the normal's OPR axis j, the column
-    index of R[k, j] in R.ravel() for k = 0, 1, 2, and the rows m·u and m·v of the moment matrix."""
+    screens x, y, z, fans in FANS order) the screen's origin, u and v, the column index of R[k, j]
+    in R.ravel() for k = 0, 1, 2 (j the OPR axis of the fan's normal m = R·e_j), and the moment
+    matrix's constant rows: m·u, m·v and m itself."""
     fans, origins, us, vs, normal_axes = [], [], [], [], []
     for name in SCREEN_NAMES:
         screen = geometry.screens[name]
@@ -87,11 +90,13 @@ def _static_arrays(geometry: Geometry):
             normal_axes += [FAN_AXES[fan][1]] * 2
     axes = np.array(normal_axes)
     columns = 3 * np.arange(3)[None, :] + axes[:, None]  # (12, 3): R[k, j] sits at 3k + j
-    moments = np.zeros((36, 9))  # rows 0–11: m·Q (filled per call), 12–23: m·u, 24–35: m·v
+    # rows 0–11: m·(Q − t) (filled per evaluation); 12–23: m·u; 24–35: m·v; 36–71: m (k = 0, 1, 2)
+    moments = np.zeros((72, 9))
     rows = np.arange(12)[:, None]
     moments[12 + rows, columns] = np.array(us)
     moments[24 + rows, columns] = np.array(vs)
-    return fans, np.array(origins), axes, columns, moments
+    moments[36 + 3 * rows + np.arange(3)[None, :], columns] = 1.0
+    return fans, np.array(origins), np.array(us), np.array(vs), columns, moments
 
 
 def _rotation_and_derivatives(alpha: float, theta: float, gamma: float) -> np.ndarray:
@@ -127,41 +132,45 @@ class _StripeProblem:
         if static is None:  # computed once per Geometry
             static = _static_arrays(geometry)
             geometry.cache["stripe_problem"] = static
-        self.fans, origins, self.axes, columns, moments = static
+        self.fans, origins, u, v, columns, moments = static
         rows = []
         for name in SCREEN_NAMES:
             lines = crosses[name].lines
             for fan in FANS[name]:
                 line = lines[fan]
                 rows.append((*line.point, *line.direction, line.half_length))
-        point_u, point_v, direction_u, direction_v, half = np.array(rows).T
-        ends = np.repeat(half, 2) * _END_SIGNS  # the two ends of each observed segment, along it
-        a = np.repeat(point_u, 2) + ends * np.repeat(direction_u, 2)
-        b = np.repeat(point_v, 2) + ends * np.repeat(direction_v, 2)
-        u, v = moments[12 + np.arange(12)[:, None], columns], moments[24 + np.arange(12)[:, None], columns]
-        points = origins + a[:, None] * u + b[:, None] * v  # (12, 3) in M
+        point_u, point_v, direction_u, direction_v, half = np.repeat(np.array(rows).T, 2, axis=1)
+        ends = half * _END_SIGNS  # the two ends of each observed segment, along it
+        a = point_u + ends * direction_u
+        b = point_v + ends * direction_v
+        self.points = origins + a[:, None] * u + b[:, None] * v  # (12, 3) segment ends Q in M
         self.moments = moments.copy()
-        self.moments[np.arange(12)[:, None], columns] = points
+        self.target = (_ROWS, columns)  # where Q − t goes in the moment matrix
         self.evaluations = 0
 
     def evaluate(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Residuals (12,) m and Jacobian (12, 6) at p = (t, α, θ, γ)."""
         self.evaluations += 1
-        rotation = _rotation_and_derivatives(p[3], p[4], p[5])  # (9, 4)
-        products = self.moments @ rotation  # (36, 4): m·Q, m·u, m·v and their angle derivatives
-        # Rᵀ·t and (∂R)ᵀ·t, each indexed by the normal's axis j: m·t and its derivatives
-        normal_dot_t = np.einsum("kjc,k->jc", rotation.reshape(3, 3, 4), p[:3])[self.axes]  # (12, 4)
-        numerator = products[:12] - normal_dot_t
-        mu, mv = products[12:24], products[24:]
+        self.moments[self.target] = self.points - p[:3]
+        # (72, 4): m·(Q − t), m·u, m·v, m — and, in columns 1–3, their derivatives in α, θ, γ
+        products = self.moments @ _rotation_and_derivatives(p[3], p[4], p[5])
+        numerator, mu, mv = products[:12], products[12:24], products[24:36]
         inverse_sine = 1.0 / np.sqrt(mu[:, 0] * mu[:, 0] + mv[:, 0] * mv[:, 0])
         residuals = numerator[:, 0] * inverse_sine
         jac = np.empty((12, 6))
-        jac[:, :3] = rotation[:, 0].reshape(3, 3).T[self.axes] * -inverse_sine[:, None]  # ∂r/∂t = −m/s
+        np.multiply(products[36:, 0].reshape(12, 3), -inverse_sine[:, None], out=jac[:, :3])  # ∂r/∂t = −m/s
         # ∂r = ∂(m·(Q − t))/s − r·(m·u ∂(m·u) + m·v ∂(m·v))/s²
-        jac[:, 3:] = numerator[:, 1:] * inverse_sine[:, None] - (residuals * inverse_sine * inverse_sine)[:, None] * (
-            mu[:, :1] * mu[:, 1:] + mv[:, :1] * mv[:, 1:]
-        )
+        slope = mu[:, :1] * mu[:, 1:]
+        slope += mv[:, :1] * mv[:, 1:]
+        slope *= (residuals * inverse_sine)[:, None]
+        np.subtract(numerator[:, 1:], slope, out=jac[:, 3:])
+        jac[:, 3:] *= inverse_sine[:, None]
         return residuals, jac
+
+
+def _step_size(step: np.ndarray) -> float:
+    """Largest move of a step, rad, the translation counted per 0.1 m (the scale of the lever arms)."""
+    return max(abs(step[0]) * 10.0, abs(step[1]) * 10.0, abs(step[2]) * 10.0, abs(step[3]), abs(step[4]), abs(step[5]))
 
 
 def _least_squares(problem: _StripeProblem, x0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -169,9 +178,10 @@ def _least_squares(problem: _StripeProblem, x0: np.ndarray) -> tuple[np.ndarray,
 
     Starts as plain Gauss–Newton (λ = 0), which converges quadratically from the closed form or
     from the previous pose of a stream; λ grows tenfold only when a step fails to lower the cost.
-    Stops when a step moves the translation by less than ``_STEP_TOL`` × 0.1 m and the angles by
-    less than ``_STEP_TOL`` rad; the residuals returned are those at the point before that last,
-    negligible step (it changes them by ~1e-17 m). Returns (parameters, residuals).
+    A Gauss–Newton step smaller than ``_STOP_STEP`` (rad, or × 0.1 m) is applied without a further
+    evaluation: what remains after it is of the order of its square (≲ 1e-17). The residuals at
+    the final point are then the last evaluated ones plus J·step (exact to that same order).
+    Returns (parameters, residuals).
     """
     x = x0.astype(float)
     residuals, jac = problem.evaluate(x)
@@ -189,11 +199,9 @@ def _least_squares(problem: _StripeProblem, x0: np.ndarray) -> tuple[np.ndarray,
             continue
         if not np.all(np.isfinite(step)):
             raise PoseError("pose solver diverged (non-finite step)")
-        small = max(abs(step[0]), abs(step[1]), abs(step[2])) < _STEP_TOL * 0.1 and max(
-            abs(step[3]), abs(step[4]), abs(step[5])
-        ) < _STEP_TOL
-        if small:
-            return x + step, residuals
+        size = _step_size(step)
+        if (damping == 0.0 and size < _STOP_STEP) or size < _STEP_FLOOR:
+            return x + step, residuals + jac @ step
         candidate = x + step
         new_residuals, new_jac = problem.evaluate(candidate)
         new_cost = float(new_residuals @ new_residuals)
@@ -254,5 +262,5 @@ def solve_pose(
             residual_rms=rms,
             threshold=max_residual_rms,
         )
-    pose = Pose.from_euler(x[:3], x[3:])
+    pose = trusted_pose(x[:3], x[3:])  # x is finite (checked above)
     return PoseEstimate(pose, rms, per_stripe, residuals, start, problem.evaluations)
