@@ -2,8 +2,8 @@
 
 While the robot moves, consecutive frames show the cross a few pixels (at most a few tens) from
 where it was. Instead of block-averaging and Hough-transforming the whole frame, each stripe is
-re-acquired in a band of ±``search_px`` around its prior line, on every ``REACQUIRE_STRIDE``-th
-cross-section: the brightest pixel of each sampled section, then a trimmed line fit. That coarse
+re-acquired in a band of ±``search_px`` around its prior line, on about ``REACQUIRE_SECTIONS``
+cross-sections spread along it: the brightest pixel of each sampled section, then a trimmed line fit. That coarse
 line feeds the same band → IGCF → bisquare pipeline as the full search (``_bands``), so the result
 is as precise as the full search's.
 
@@ -32,7 +32,8 @@ from instrument.vision._linefit import _median
 from instrument.vision._types import CrossMeasurement, CrossNotFound
 
 TRACK_SEARCH_PX = 24  # default half-width of the re-acquisition band around each prior line, px
-REACQUIRE_STRIDE = 8  # every 8th cross-section is sampled to re-acquire a stripe
+REACQUIRE_SECTIONS = 150  # about this many cross-sections are sampled to re-acquire a stripe
+MAX_REACQUIRE_STRIDE = 16
 MIN_FOUND_FRACTION = 0.5
 MIN_PEAK_SIGMAS = 6.0
 PEAK_FRACTION = 0.25
@@ -68,7 +69,10 @@ def _reacquire(flat, shape, line: CoarseLine, other: CoarseLine, search: int) ->
     """The stripe near ``line`` again, to about a pixel, with the band's background; or why not."""
     rows, cols = shape
     n_sections, across_len = (rows, cols) if line.vertical else (cols, rows)
-    s = np.arange(REACQUIRE_STRIDE // 2, n_sections, REACQUIRE_STRIDE)
+    # every stride-th section: ~REACQUIRE_SECTIONS of them, whose brightest pixels (±0.5 px each)
+    # place the line to a few hundredths of a pixel — far more than the fine stage's band needs
+    stride = int(np.clip(n_sections // REACQUIRE_SECTIONS, 1, MAX_REACQUIRE_STRIDE))
+    s = np.arange(stride // 2, n_sections, stride)
     position = line.at(s)
     # leave out the crossing: sections where the other stripe runs through the search band
     reach = search * (1.0 + abs(other.slope)) + search
