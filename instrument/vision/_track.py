@@ -27,7 +27,7 @@ from __future__ import annotations
 import numpy as np
 
 from instrument.vision._bands import CrossJob, kind, measure_crosses
-from instrument.vision._detect import CoarseLine, _trimmed_line
+from instrument.vision._detect import CoarseLine
 from instrument.vision._linefit import _median
 from instrument.vision._types import CrossMeasurement, CrossNotFound
 
@@ -122,14 +122,25 @@ def _reacquire(flat, shape, line: CoarseLine, other: CoarseLine, search: int) ->
     # far inside what the band around the coarse line needs
     centre = (base[found] + peak_index[found]).astype(float)
     along = s[found].astype(float)
-    intercept, slope = _trimmed_line(along, centre)
+    intercept, slope = _line(along, centre)
     inliers = np.abs(centre - (intercept + slope * along)) <= INLIER_PX
-    if np.count_nonzero(inliers) < MIN_INLIER_FRACTION * n_found:
+    n_inliers = int(np.count_nonzero(inliers))
+    if n_inliers < MIN_INLIER_FRACTION * n_found:
         return (
             f"{name} stripe: the peaks near its prior line do not lie on one straight line "
-            f"({int(np.count_nonzero(inliers))} of {n_found} within {INLIER_PX:g} px)"
+            f"({n_inliers} of {n_found} within {INLIER_PX:g} px)"
         )
+    if n_inliers < n_found:  # refit without the stray peaks (hot pixels, a reflection)
+        intercept, slope = _line(along[inliers], centre[inliers])
     return CoarseLine(line.vertical, intercept, slope, n_found), background
+
+
+def _line(u: np.ndarray, v: np.ndarray) -> tuple[float, float]:
+    """Least-squares v = a + b·u (u spread: the sampled sections)."""
+    u_mean, v_mean = float(u.mean()), float(v.mean())
+    du = u - u_mean
+    slope = float(du @ (v - v_mean)) / float(du @ du)
+    return v_mean - slope * u_mean, slope
 
 
 def reacquire(flat, shape, prior, search) -> tuple[CoarseLine, CoarseLine, float] | str:
