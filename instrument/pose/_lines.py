@@ -190,9 +190,10 @@ def observe_cross(measurement, screen: Screen) -> ScreenCross:
         shown = np.asarray(getattr(measurement, "center", np.full(2, np.nan)), dtype=float).tolist()
         raise PoseError(f"screen {name!r}: cross centre is not a finite (x, y) pixel point: {shown}")
     if not screen.contains_pixel(center_px):
+        width, height = screen.size_px or (0, 0)  # contains_pixel is False only with a known size
         raise CrossOffScreenError(
             f"screen {name!r}: cross centre ({center_px[0]:.1f}, {center_px[1]:.1f}) px is off the "
-            f"{screen.size_px[0]}×{screen.size_px[1]} px image"  # type: ignore[index]
+            f"{width}×{height} px image"
         )
     stripes = (
         _stripe_to_screen(measurement.horizontal, screen, "horizontal"),

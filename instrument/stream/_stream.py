@@ -223,7 +223,11 @@ class PoseStreamer:
                 index, 1, f"frames not from one trigger: timestamps differ by {spread * 1e3:.3f} ms "
                 f"(limit {self.max_timestamp_spread * 1e3:.3f} ms)",
             )
-        crosses = {s: triple.crosses[s] for s in SCREENS}
+        crosses: dict[str, CrossMeasurement] = {}
+        for s in SCREENS:
+            cross = triple.crosses[s]
+            assert cross is not None  # the missing ones were dropped above
+            crosses[s] = cross
         try:
             estimate = self._solve(crosses)
         except PoseError as exc:
@@ -236,7 +240,7 @@ class PoseStreamer:
             raise ValueError(f"compensate must return a (6,) pose, got shape {pose.shape}")
         if self.tool_in_opr is not None:
             pose = tool_pose(Pose.from_iso(pose), self.tool_in_opr).as_iso()
-        lines = [line for c in crosses.values() for line in (c.horizontal, c.vertical)]  # type: ignore[union-attr]
+        lines = [line for c in crosses.values() for line in (c.horizontal, c.vertical)]
         sample = PoseSample(
             index=index,
             time=float(np.mean(times)),

@@ -195,7 +195,7 @@ def measure_crosses(jobs, half_window, min_sections) -> list[CrossMeasurement | 
     Each entry of the result is the frame's ``CrossMeasurement``, or the ``CrossNotFound`` it
     raised (returned, not raised, so that one bad frame does not cost the others their result).
     """
-    results: list[CrossMeasurement | CrossNotFound | None] = [None] * len(jobs)
+    results: dict[int, CrossMeasurement | CrossNotFound] = {}
     prepared = []  # (job number, job, [horizontal band, vertical band])
     for number, job in enumerate(jobs):
         try:
@@ -218,7 +218,7 @@ def measure_crosses(jobs, half_window, min_sections) -> list[CrossMeasurement | 
                 results[number] = exc
                 continue
             results[number] = _cross(h_fit, v_fit, job.search)
-    return results  # type: ignore[return-value]
+    return [results[number] for number in range(len(jobs))]
 
 
 def measure_cross(

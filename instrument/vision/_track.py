@@ -178,4 +178,6 @@ def track_cross(flat, shape, saturation, prior, half_window, min_sections, searc
     job = CrossJob(flat, shape, horizontal, vertical, background, saturation, "tracked")
     (measured,) = measure_crosses([job], half_window, min_sections)
     reason = lost_after_fit(measured, prior)
-    return reason if reason is not None else measured  # type: ignore[return-value]
+    if reason is not None or isinstance(measured, CrossNotFound):
+        return reason or str(measured)
+    return measured
