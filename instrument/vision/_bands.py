@@ -8,6 +8,7 @@ left out → bisquare line fit (``_linefit``) → intersection and angles.
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import cv2
@@ -22,7 +23,7 @@ BAND_HALF_WIDTH = 12  # px each side of the coarse line: holds the stripe, its w
 MIN_AMPLITUDE_SIGMAS = 6.0  # sections whose peak is weaker than this many noise σ are left out
 EDGE_ROWS = np.r_[0:2, -2:0]  # band rows that sample the background (≥ 11 px from the line)
 BACKGROUND_SPAN = 31  # sections averaged for the local background
-NOISE_STRIDE = 4  # every 4th section's edge pixels give the noise σ (plenty of samples)
+NOISE_STRIDE = 8  # every 8th section's edge pixels give the noise σ (plenty of samples)
 
 
 class Band(NamedTuple):
@@ -82,6 +83,22 @@ def extract_band(flat, shape, line: CoarseLine, other: CoarseLine, fallback_bg, 
     return Band(values, valid, s, base, background, noise, line.vertical)
 
 
+_EDGE_COUNTS: dict[int, np.ndarray] = {}
+
+
+def _edge_counts(n: int) -> np.ndarray:
+    """Edge pixels inside the running window of each of n sections (cached: the same n recur)."""
+    counts = _EDGE_COUNTS.get(n)
+    if counts is None:
+        half = BACKGROUND_SPAN // 2
+        i = np.arange(n)
+        counts = (np.minimum(i + half, n - 1) - np.maximum(i - half, 0) + 1) * float(len(EDGE_ROWS))
+        if len(_EDGE_COUNTS) > 64:  # a stream sees a handful of lengths; never grow without bound
+            _EDGE_COUNTS.clear()
+        _EDGE_COUNTS[n] = counts
+    return counts
+
+
 def _local_background(values, valid, fallback_bg):
     """Background per section and noise σ, from the band's two outer rows on each side.
 
@@ -91,15 +108,12 @@ def _local_background(values, valid, fallback_bg):
     edges = values[EDGE_ROWS].astype(np.float32)
     n = values.shape[1]
     if valid is None:  # every edge pixel exists: the counts of the running sum are known
-        half = BACKGROUND_SPAN // 2
-        i = np.arange(n)
-        count = (np.minimum(i + half, n - 1) - np.maximum(i - half, 0) + 1) * float(len(EDGE_ROWS))
         total = cv2.boxFilter(
             edges.sum(axis=0)[None, :], -1, (BACKGROUND_SPAN, 1), normalize=False, borderType=cv2.BORDER_CONSTANT
         )[0]
-        background = total / count
+        background = total / _edge_counts(n)
         sample = edges[:, ::NOISE_STRIDE] - background[::NOISE_STRIDE].astype(np.float32)
-        noise = float(np.sqrt(np.mean(sample * sample)))
+        noise = math.sqrt(float(np.einsum("ij,ij->", sample, sample)) / sample.size)
         return background, max(noise, 0.5)
     weight = valid[EDGE_ROWS].astype(np.float32)
     if weight.sum() < 16:  # band cut off by the frame on both sides: use the frame's figures

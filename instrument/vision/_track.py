@@ -71,7 +71,7 @@ def _reacquire(flat, shape, line: CoarseLine, other: CoarseLine, search: int) ->
     n_sections, across_len = (rows, cols) if line.vertical else (cols, rows)
     # every stride-th section: ~REACQUIRE_SECTIONS of them, whose brightest pixels (±0.5 px each)
     # place the line to a few hundredths of a pixel — far more than the fine stage's band needs
-    stride = int(np.clip(n_sections // REACQUIRE_SECTIONS, 1, MAX_REACQUIRE_STRIDE))
+    stride = min(max(n_sections // REACQUIRE_SECTIONS, 1), MAX_REACQUIRE_STRIDE)
     s = np.arange(stride // 2, n_sections, stride)
     position = line.at(s)
     # leave out the crossing: sections where the other stripe runs through the search band
@@ -102,7 +102,7 @@ def _reacquire(flat, shape, line: CoarseLine, other: CoarseLine, search: int) ->
     if inside is not None:  # pixels off the frame read as background
         values[~inside] = np.asarray(background).astype(values.dtype)
     peak_index = values.argmax(axis=1)
-    contrast = values.max(axis=1) - background
+    contrast = values[np.arange(len(s)), peak_index] - background
     standing = contrast >= MIN_PEAK_SIGMAS * noise
     n_standing = int(np.count_nonzero(standing))
     if n_standing >= 4:  # a few hot pixels must not set the level: the upper quartile of the peaks
