@@ -71,7 +71,12 @@ def small_motion_pose(measurements: Mapping[str, object], geometry: Geometry, *,
     """
     if lever not in ("paper", "exact"):
         raise ValueError(f"lever: expected 'paper' or 'exact', got {lever!r}")
-    crosses = _as_crosses(measurements, geometry)
+    translation, rotation, _ = closed_form(_as_crosses(measurements, geometry), geometry, lever)
+    return Pose(translation, rotation)
+
+
+def closed_form(crosses: Mapping[str, ScreenCross], geometry: Geometry, lever: str = "exact"):
+    """(translation, rotation, (α, θ, γ)) of the closed form, from crosses already on the screens."""
     alpha, theta, gamma = (cross_turn(crosses[name], geometry) for name in SCREEN_NAMES)
     rotation = euler_to_matrix(alpha, theta, gamma)
     rows, rhs = [], []
@@ -98,4 +103,4 @@ def small_motion_pose(measurements: Mapping[str, object], geometry: Geometry, *,
         translation = np.linalg.solve(
             design.T @ design, design.T @ np.array(rhs)
         )  # well conditioned: rows ≈ unit vectors
-    return Pose(translation, rotation)
+    return translation, rotation, (alpha, theta, gamma)

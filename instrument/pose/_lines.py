@@ -207,6 +207,7 @@ def observe_cross(measurement, screen: Screen) -> ScreenCross:
     order = (0, 1) if straight else (1, 0)
     fans = FANS[name]
     lines: dict[str, ScreenLine] = {}
+    oriented = []
     for fan_index, (stripe_index, fan) in enumerate(zip(order, fans)):
         pu, pv, du, dv, half_length = stripes[stripe_index]
         cosine = cosines[stripe_index][fan_index]
@@ -217,9 +218,15 @@ def observe_cross(measurement, screen: Screen) -> ScreenCross:
                 f"{np.degrees(_MAX_MATCH_ANGLE):.0f}°"
             )
         sign = 1.0 if cosine > 0 else -1.0
+        oriented.append((pu, pv, sign * du, sign * dv))
         lines[fan] = ScreenLine(np.array([pu, pv]), np.array([sign * du, sign * dv]), half_length)
-    center = intersect(lines[fans[0]], lines[fans[1]])
-    return ScreenCross(name, lines, center, screen.origin + center[0] * screen.u + center[1] * screen.v)
+    # the intersection of the two lines (Cramer's rule; not parallel: checked above)
+    (p0u, p0v, d0u, d0v), (p1u, p1v, d1u, d1v) = oriented
+    determinant = d1u * d0v - d0u * d1v
+    along = ((p1u - p0u) * -d1v + (p1v - p0v) * d1u) / determinant
+    cu, cv = p0u + along * d0u, p0v + along * d0v
+    center_m = screen.origin + cu * screen.u + cv * screen.v
+    return ScreenCross(name, lines, np.array([cu, cv]), center_m)
 
 
 def observe_crosses(measurements: Mapping[str, object], geometry: Geometry) -> dict[str, ScreenCross]:

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from instrument.pose._closed_form import _as_crosses, small_motion_pose
+from instrument.pose._closed_form import _as_crosses, closed_form
 from instrument.pose._errors import InconsistentCrossesError, PoseError
 from instrument.pose._geometry import SCREEN_NAMES, Geometry
 from instrument.pose._lines import FAN_AXES, FANS, ScreenCross
@@ -243,9 +243,15 @@ def solve_pose(
     MissingScreenError, CrossOffScreenError, StripeMatchError, InconsistentCrossesError, PoseError
     """
     crosses = _as_crosses(measurements, geometry)
-    start = initial if initial is not None else small_motion_pose(crosses, geometry, lever="exact")
+    if initial is None:
+        translation, _, euler = closed_form(crosses, geometry, lever="exact")
+        x0 = np.array([*translation, *euler])
+        start = trusted_pose(x0[:3], x0[3:])
+    else:
+        start = initial
+        x0 = np.concatenate([start.translation, start.euler])
     problem = _StripeProblem(crosses, geometry)
-    x, residuals = _least_squares(problem, np.concatenate([start.translation, start.euler]))
+    x, residuals = _least_squares(problem, x0)
     if not np.all(np.isfinite(x)):
         raise PoseError("pose solver diverged (non-finite parameters)")
     if abs(x[4]) > np.radians(80.0):
