@@ -106,7 +106,7 @@ def test_overdamped_arrival_has_no_overshoot():
 def test_already_settled_and_never_settled():
     t = np.arange(0.0, 1.0, 1e-3)
     still = TARGET + np.zeros((len(t), 3))
-    r = pose_stabilisation(t, still, 0.2, 10e-6, attained=TARGET, approach=U)
+    r = pose_stabilisation(t, still, 0.2003, 10e-6, attained=TARGET, approach=U)  # between two samples
     assert r.stabilisation_time == 0.0 and r.overshoot == 0.0
     ringing = TARGET + (30e-6 * np.sin(2 * np.pi * 12 * t))[:, None] * U
     r = pose_stabilisation(t, ringing, 0.2, 10e-6, attained=TARGET, approach=U)

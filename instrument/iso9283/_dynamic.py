@@ -149,19 +149,22 @@ def _crossing(times: np.ndarray, distance: np.ndarray, band: float, i: int) -> f
     return float(times[i] + min(max(fraction, 0.0), 1.0) * (times[i + 1] - times[i]))
 
 
-def _settled_time(times: np.ndarray, distance: np.ndarray, band: float, start: int, hold: float | None) -> float:
+def _settled_time(
+    times: np.ndarray, distance: np.ndarray, band: float, start: int, hold: float | None, origin: float
+) -> float:
     """First time from which every sample at index ≥ ``start`` stays within the band (NaN if never).
 
-    Interpolated between the last sample outside the band and the next one; ``times[start]`` if no
-    sample from ``start`` on is outside. The record must then stay inside for ``hold`` seconds
-    (default ``HOLD_FRACTION`` of the record from ``start``): a record that ends soon after its last
-    excursion — between two swings of an oscillation that goes on — has not shown that it settled.
+    Interpolated between the last sample outside the band and the next one; ``origin`` (the
+    signal, or the departure) if no sample from ``start`` on is outside. The record must then stay
+    inside for ``hold`` seconds (default ``HOLD_FRACTION`` of the record from ``start``): a record
+    that ends soon after its last excursion — between two swings of an oscillation that goes on —
+    has not shown that it settled.
     """
     if hold is None:
         hold = HOLD_FRACTION * float(times[-1] - times[start])
     outside = np.flatnonzero(distance[start:] > band)
     if len(outside) == 0:
-        return float(times[start])
+        return origin
     last = start + int(outside[-1])
     if last == len(times) - 1:
         return float("nan")
@@ -263,7 +266,7 @@ def pose_stabilisation(
             raise ISO9283Error("approach: must not be the zero vector")
     direction = direction / np.linalg.norm(direction)
     distance = np.linalg.norm(points - target, axis=1)
-    settled = _settled_time(times, distance, band, start, hold)
+    settled = _settled_time(times, distance, band, start, hold, t_signal)
     inside = np.flatnonzero(distance <= band)
     band_entry = float("nan")
     if len(inside):
@@ -335,7 +338,7 @@ def positioning_time(
         raise ISO9283Error("positions: the record never leaves the band around its start position (no move)")
     first = int(left[0])
     departure = float(times[0]) if first == 0 else _crossing(times, from_start, band, first - 1)
-    settled = _settled_time(times, np.linalg.norm(points - target, axis=1), band, first, hold)
+    settled = _settled_time(times, np.linalg.norm(points - target, axis=1), band, first, hold, departure)
     return PositioningTime(settled - departure, departure, settled, float(np.linalg.norm(target - origin)))
 
 
