@@ -37,7 +37,9 @@ function showPoints(fresh) {
       : `${last.key}: FAILED ${last.error || ""}`;
   }
   // One small plot per point label (ISO P1…P5); a calibration with many labels gets one plot of all poses.
-  const good = points.filter((p) => p.ok && p.pose);
+  // The ISO cycles only, once there are any (the transform pass visits the same points first).
+  const measured = points.filter((p) => p.ok && p.pose);
+  const good = measured.some((p) => p.phase === "iso") ? measured.filter((p) => p.phase === "iso") : measured;
   const labels = [...new Set(good.map((p) => p.label))];
   const groups = labels.length <= 12 ? labels.map((l) => [l, good.filter((p) => p.label === l)]) : [["all poses", good]];
   $("scatter").replaceChildren(...groups.map(([label, mine]) => {
