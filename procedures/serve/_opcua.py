@@ -44,7 +44,7 @@ class OpcUaSettings:
 
 # (node path below Instrument, variant type, initial value, description)
 VARIABLES: tuple[tuple[str, ua.VariantType, Any, str], ...] = (
-    ("State", V.String, "IDLE", "IDLE, STARTING, QUEUED, RUNNING, PAUSED, FINISHED, FAILED or ABORTED"),
+    ("State", V.String, "IDLE", "IDLE, STARTING, QUEUED, RUNNING, PAUSING, PAUSED, FINISHED, FAILED or ABORTED"),
     ("RunId", V.String, "", "the current run (the one started here, else the newest active or newest run)"),
     ("Procedure", V.String, "", "its procedure kind"),
     ("Station", V.String, "", "its station name"),
@@ -220,6 +220,9 @@ class InstrumentOpcUa:
         snap = await asyncio.to_thread(self.reader.snapshot, run_id) if run_id else None
         run = snap["run"] if snap else None
         state = "STARTING" if self.launcher.starting else (run["state"] if run else "IDLE")
+        active = self.launcher.active
+        if state == "PAUSED" and active is not None and run is not None and active.run_id == run["id"]:
+            state = "PAUSING"  # stored PAUSED, but its process is still bringing the cell to rest
         await self._results()  # before State: a client that sees FINISHED finds the run's results in place
         await self._set("State", state)
         await self._set("RunId", run["id"] if run else "")
@@ -280,28 +283,34 @@ class InstrumentOpcUa:
         self._wake.set()
 
     # ---------------------------------------------------------------------------------- methods
-    async def _call(self, name: str, action: Callable[[], Any]) -> list[ua.Variant]:
+    async def _call(self, name: str, action: Callable[[], Any]) -> list[ua.Variant] | ua.StatusCode:
         try:
             result = action()
             if asyncio.iscoroutine(result):
                 await result
-        except LaunchRefused as exc:
+        except LaunchRefused as exc:  # the client gets BadInvalidState, LastMessage says why
             await self._set("LastMessage", f"{name} refused: {exc}")
-            raise ua.UaStatusCodeError(ua.StatusCodes.BadInvalidState) from None
+            return ua.StatusCode(ua.StatusCodes.BadInvalidState)
         await self._set("LastMessage", f"{name}: accepted")
         await self.refresh()  # State reads STARTING (or the new state) as soon as the call returns
         return []
 
     async def _start_run(self, parent: ua.NodeId, procedure: ua.Variant, station: ua.Variant,
-                         overrides: ua.Variant) -> list[ua.Variant]:
-        self._alarm_from_launcher = None
-        return await self._call("StartRun", lambda: self.launcher.start_run(
-            str(procedure.Value or ""), str(station.Value or ""), str(overrides.Value or "")))
+                         overrides: ua.Variant) -> list[ua.Variant] | ua.StatusCode:
+        await self.refresh()
 
-    async def _pause(self, parent: ua.NodeId) -> list[ua.Variant]:
+        def start() -> Any:
+            if self._values.get("State") == "PAUSED":
+                raise LaunchRefused(f"run {self._values.get('RunId')} is PAUSED; resume or abort it first")
+            self._alarm_from_launcher = None
+            return self.launcher.start_run(str(procedure.Value or ""), str(station.Value or ""),
+                                           str(overrides.Value or ""))
+        return await self._call("StartRun", start)
+
+    async def _pause(self, parent: ua.NodeId) -> list[ua.Variant] | ua.StatusCode:
         return await self._call("Pause", self.launcher.pause)
 
-    async def _resume(self, parent: ua.NodeId) -> list[ua.Variant]:
+    async def _resume(self, parent: ua.NodeId) -> list[ua.Variant] | ua.StatusCode:
         run_id = await asyncio.to_thread(self._current_run_id)
 
         def resume() -> Any:
@@ -311,7 +320,7 @@ class InstrumentOpcUa:
             return self.launcher.resume(run_id)
         return await self._call("Resume", resume)
 
-    async def _abort(self, parent: ua.NodeId) -> list[ua.Variant]:
+    async def _abort(self, parent: ua.NodeId) -> list[ua.Variant] | ua.StatusCode:
         run_id = await asyncio.to_thread(self._current_run_id)
         paused = run_id if self._values.get("State") == "PAUSED" else None
         return await self._call("Abort", lambda: self.launcher.abort(paused))
