@@ -14,8 +14,8 @@ from tests._serve_helpers import instrument_run, instrument_serve, short_iso
 
 CHROMIUM = os.environ.get("INSTRUMENT_CHROMIUM", "/usr/bin/chromium")
 # What Chromium needs on this machine (root, no GPU, a closed network): see docs/web_view.md.
-CHROMIUM_FLAGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run", "--disable-background-networking",
-                  "--disable-component-update", "--disable-sync"]
+CHROMIUM_FLAGS = ["--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                  "--disable-background-networking", "--disable-component-update", "--disable-sync"]
 
 pytestmark = [pytest.mark.timeout(300), pytest.mark.slow]
 

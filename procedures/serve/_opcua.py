@@ -290,7 +290,7 @@ class InstrumentOpcUa:
                 await result
         except LaunchRefused as exc:  # the client gets BadInvalidState, LastMessage says why
             await self._set("LastMessage", f"{name} refused: {exc}")
-            return ua.StatusCode(ua.StatusCodes.BadInvalidState)
+            return ua.StatusCode(ua.UInt32(ua.StatusCodes.BadInvalidState))
         await self._set("LastMessage", f"{name}: accepted")
         await self.refresh()  # State reads STARTING (or the new state) as soon as the call returns
         return []
