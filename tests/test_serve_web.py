@@ -18,7 +18,7 @@ from tests.fakes import FakeCell, FakeScience, write_station
 from tests.synthetic_cross import render_cross
 
 with warnings.catch_warnings():  # starlette's TestClient announces a future client package on import
-    warnings.simplefilter("ignore", DeprecationWarning)
+    warnings.filterwarnings("ignore", message="Using `httpx` with `starlette.testclient` is deprecated")
     from fastapi.testclient import TestClient
 
 pytestmark = pytest.mark.timeout(120)
