@@ -6,8 +6,9 @@ requests. A reader thread routes the replies to the waiting callers, so calls fr
 threads (a move on one, ``stop()`` on another) are in flight together. Every call has a deadline:
 when it passes, or when the worker dies (a client crash, SIGKILL), the caller gets a typed error
 at once and the worker is killed and reaped. Waiting is interruptible, so Ctrl-C and SIGTERM
-handlers of the engine always run. The worker is killed when its link is closed, collected, or
-when the interpreter exits; a worker whose engine dies sees the pipe's end of file and exits.
+handlers of the engine always run. A link that is collected, or still open when the interpreter
+exits, shuts its pipe down so that the worker ends itself (stopping a move in progress), and is
+killed if it does not within ``EXIT_WAIT``; a worker whose engine dies sees the same end of file.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import itertools
 import multiprocessing
 import os
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -90,7 +92,9 @@ class WorkerLink:
         finally:
             child_end.close()
         self._process, self._conn = process, parent_end
-        self._finalizer = weakref.finalize(self, _kill_and_reap, process)
+        # The finalizer's own handle on the pipe: it may shut the pipe down whatever the reader did.
+        shutdown_handle = socket.socket(fileno=os.dup(parent_end.fileno()))
+        self._finalizer = weakref.finalize(self, _end_worker, process, shutdown_handle, os.getpid())
         with self._shared.condition:
             self._shared.waiting.add(0)  # the greeting's id, before the reader can see it
         threading.Thread(target=_read_replies, args=(parent_end, process, self._shared),
@@ -111,10 +115,13 @@ class WorkerLink:
         return self._shared.death
 
     def kill(self) -> None:
-        """Kill the worker (only it, by its id) and reap it; idempotent."""
+        """SIGKILL to the worker (only it, by its id), then reap it; idempotent."""
         with self._shared.condition:
             self._shared.death = self._shared.death or "stopped by the engine"
             self._shared.condition.notify_all()
+        if self._process is not None and self._process.poll() is None:
+            with contextlib.suppress(OSError):
+                self._process.kill()
         if self._finalizer is not None:
             self._finalizer()
 
@@ -152,11 +159,12 @@ class WorkerLink:
             with self._send_lock:
                 assert self._conn is not None
                 self._conn.send((request_id, method, args))
-        except (OSError, ValueError):
+        except (OSError, ValueError):  # the worker is gone: the reader thread is about to say why
             with shared.condition:
                 shared.waiting.discard(request_id)
+                shared.condition.wait_for(lambda: shared.death is not None, EXIT_WAIT + 1.0)
             raise DeviceConnectionError(self.device, operation,
-                                        f"the client process is gone ({shared.death or 'pipe closed'})") from None
+                                        f"the client process died ({shared.death or 'pipe closed'})") from None
         reply = self._wait(request_id, operation, deadline, f"no answer within {deadline:.1f} s")
         if reply[1] == "ok":
             return reply[2]
@@ -198,7 +206,6 @@ def _read_replies(conn: Connection, process: subprocess.Popen, shared: _Shared) 
             if reply[0] in shared.waiting:
                 shared.replies[reply[0]] = reply
                 shared.condition.notify_all()
-    conn.close()
     try:
         code = process.wait(EXIT_WAIT)
     except subprocess.TimeoutExpired:  # closed its end of the pipe but lives on: not ours to keep
@@ -208,16 +215,29 @@ def _read_replies(conn: Connection, process: subprocess.Popen, shared: _Shared) 
         if shared.death is None:
             shared.death = _describe_exit(code)
         shared.condition.notify_all()
+    conn.close()
 
 
-def _kill_and_reap(process: subprocess.Popen) -> None:
-    """SIGKILL to the worker (by its own id, never a group) and reap it; the reader thread then sees the
-    pipe end and closes the parent's end."""
-    if process.poll() is None:
-        with contextlib.suppress(OSError):
-            process.kill()
-    with contextlib.suppress(subprocess.TimeoutExpired):
-        process.wait(EXIT_WAIT)
+def _end_worker(process: subprocess.Popen, pipe: socket.socket, owner_pid: int) -> None:
+    """Shut the pipe down (the worker reads its end of file, stops a move and exits), wait for it
+    ``EXIT_WAIT`` seconds, then SIGKILL it (by its own id, never a group) and reap it. The reader
+    thread sees the end of file too and closes the parent's end. Only the process that started the
+    worker does this, not a forked child that inherited the link."""
+    if os.getpid() != owner_pid:
+        return
+    try:
+        if process.poll() is None:
+            with contextlib.suppress(OSError):
+                pipe.shutdown(socket.SHUT_RDWR)  # unlike close(), wakes threads blocked on the pipe
+            try:
+                process.wait(EXIT_WAIT)
+            except subprocess.TimeoutExpired:
+                with contextlib.suppress(OSError):
+                    process.kill()
+        with contextlib.suppress(subprocess.TimeoutExpired):
+            process.wait(EXIT_WAIT)
+    finally:
+        pipe.close()
 
 
 def _describe_exit(code: int) -> str:

@@ -29,6 +29,7 @@ How it keeps every promise of the interface
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -120,19 +121,20 @@ class URRobot:
             self._discard_link(graceful=False)
             link = WorkerLink(self.name, WORKER_SCRIPT)
             self._link = link
-            deadline = 6 * self.connect_timeout + 2.0
             try:
                 link.start()
-                link.call("open", "open", (self._worker_settings(),), deadline)
+                started = time.monotonic()
+                link.call("open", "open", (self._worker_settings(),), 6 * self.connect_timeout + 2.0)
             except WorkerFailure as failure:
                 self._discard_link(graceful=False)
                 raise self._typed(failure) from None
-            except DeviceError:
+            except (DeviceTimeout, DeviceConnectionError) as error:
                 self._discard_link(graceful=False)
-                if link.death is not None and "SIGALRM" not in link.death and "stopped" not in link.death:
-                    raise
-                raise DeviceTimeout(self.name, "open", f"{self.host} did not complete the ur_rtde handshake within "
-                                    f"{deadline:.1f} s; the client process was stopped") from None
+                # No answer in time, or the kernel timer that bounds the client's constructors fired.
+                if isinstance(error, DeviceTimeout) or "SIGALRM" in error.cause:
+                    raise DeviceTimeout(self.name, "open", f"{self.host} did not complete the ur_rtde handshake within "
+                                        f"{time.monotonic() - started:.1f} s; the client process was stopped") from None
+                raise
             except BaseException:  # Ctrl-C or SIGTERM while opening: leave no worker behind
                 self._discard_link(graceful=False)
                 raise

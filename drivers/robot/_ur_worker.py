@@ -196,9 +196,13 @@ class Session:
                         self._calls.call(client.disconnect, self.command_timeout)
 
     def stop_motion_on_exit(self) -> None:
-        """The engine is gone: stop a move in progress (bounded by the caller's kernel timer)."""
-        if self.moving.is_set() and self.control is not None and self.broken is None:
-            with contextlib.suppress(Exception):
+        """The engine is gone and nobody watches the robot: stop any move in progress, blocking or
+        asynchronous (bounded by the caller's kernel timer)."""
+        if self.control is None or self.receive is None or self.broken is not None:
+            return
+        with contextlib.suppress(Exception):
+            if (self.moving.is_set() or self.control.getAsyncOperationProgressEx().isAsyncOperationRunning()
+                    or any(abs(v) > 1e-6 for v in self.receive.getActualTCPSpeed())):
                 self.control.stopL(2.0, False)
 
     # ----------------------------------------------------------------------------- helpers
