@@ -223,17 +223,18 @@ class Engine:
         reader.join(timeout)
         if not found:
             self.stop()
-            self.stderr.seek(0)
-            stderr = self.stderr.read().decode(errors="replace")
             pytest.fail(f"engine printed no {prefix!r} within {timeout} s; output {self.lines}, "
-                        f"stderr {stderr[-2000:]}")
+                        f"stderr {self.stderr_text()[-2000:]}")
         return found[0]
+
+    def stderr_text(self) -> str:
+        self.stderr.seek(0)
+        return self.stderr.read().decode(errors="replace")
 
     def stop(self) -> None:
         if self.process.poll() is None:
             self.process.kill()
         self.process.wait(10)
-        self.stderr.close()
 
 
 def robot_at_reference(host: str) -> str:
@@ -259,6 +260,7 @@ def engines():
     yield start
     for engine in started:
         engine.stop()
+        engine.stderr.close()
 
 
 # --------------------------------------------------------------------------------------- open
@@ -344,16 +346,23 @@ def test_a_stalled_stream_is_a_typed_error_and_the_robot_recovers(twin, robot):
 
 
 # --------------------------------------------------------------------------------------- lifetime
-def test_no_worker_outlives_close(twin):
+def test_no_worker_and_no_descriptor_outlives_close(twin):
+    me = psutil.Process()
+    fds_before = me.num_fds()
     robot = URRobot(URRtdeSettings(host=twin.endpoints["host"], connect_timeout=3.0), envelope=ENVELOPE)
-    robot.open()
-    pid = robot.worker_pid
-    assert pid is not None and psutil.pid_exists(pid)
-    robot.close()
-    assert robot.worker_pid is None
-    assert not psutil.pid_exists(pid) or psutil.Process(pid).status() == psutil.STATUS_ZOMBIE
-    assert workers_of(os.getpid()) == []
+    for _ in range(2):
+        robot.open()
+        pid = robot.worker_pid
+        assert pid is not None and psutil.pid_exists(pid)
+        robot.close()
+        assert robot.worker_pid is None
+        assert not psutil.pid_exists(pid)  # reaped, not even a zombie
+        assert workers_of(os.getpid()) == []
     robot.close()  # twice is harmless
+    deadline = time.monotonic() + 5.0
+    while me.num_fds() > fds_before:  # the reply reader closes its end of the pipe once the worker is gone
+        assert time.monotonic() < deadline, f"file descriptors leaked: {fds_before} -> {me.num_fds()}"
+        time.sleep(0.05)
 
 
 def test_no_worker_outlives_its_engine_and_a_move_in_progress_is_stopped(twin, engines):
@@ -442,6 +451,54 @@ def test_the_engine_can_be_interrupted_while_open_is_pending(after_probe, engine
     assert line.split()[1] == ("KeyboardInterrupt" if signum == signal.SIGINT else "SystemExit")
     assert line.split()[2] == "None"  # open() cleared its worker on the way out
     engine.process.wait(10)
+    assert workers_of(engine.process.pid) == []
+
+
+def test_a_sigterm_handler_may_stop_and_close_the_robot_while_a_move_is_pending(twin, engines):
+    """An abort from inside the signal handler, while the main thread waits in a blocking move:
+    nothing deadlocks, the robot stops short of the target, the engine exits, no worker is left."""
+    engine = engines(robot_at_reference(twin.endpoints["host"]) + f"""
+        def abort(signum, frame):
+            robot.stop(2.0)
+            robot.close()
+            say("aborted")
+        signal.signal(signal.SIGTERM, abort)
+        say("moving", robot.worker_pid)
+        try:
+            robot.move_linear(np.array({(REFERENCE + [0, 0, 0.1, 0, 0, 0]).tolist()}), speed=0.002, acceleration=0.5)
+        except Exception as exc:
+            say("move ended", type(exc).__name__)
+    """)
+    worker_pid = int(engine.expect("moving").split()[1])
+    time.sleep(0.5)
+    engine.process.send_signal(signal.SIGTERM)
+    engine.expect("aborted", timeout=15.0)
+    # Stopped short of the target, or its worker closed under it: a typed error either way.
+    assert engine.expect("move ended").split()[2] in ("MoveFailed", "DeviceConnectionError")
+    assert engine.process.wait(10) == 0
+    assert wait_gone(worker_pid, 2.0)
+    deadline = time.monotonic() + 5.0
+    while twin.call("state")["moving"]:
+        assert time.monotonic() < deadline, "the robot did not stop"
+        time.sleep(0.05)
+    assert REFERENCE[2] < twin.call("state")["tcp_pose"][2] < REFERENCE[2] + 0.05
+
+
+def test_a_signal_handler_may_close_the_robot_while_open_is_pending(after_probe, engines):
+    engine = engines(f"""
+        robot = URRobot(URRtdeSettings(host={after_probe.host!r}, connect_timeout=20.0), envelope=MotionEnvelope())
+        signal.signal(signal.SIGTERM, lambda signum, frame: robot.close())
+        say("opening")
+        try:
+            robot.open()
+        except Exception as exc:
+            say("open ended", type(exc).__name__, robot.worker_pid)
+    """)
+    engine.expect("opening")
+    after_probe.wait_for_client_constructor()
+    engine.process.send_signal(signal.SIGTERM)
+    assert engine.expect("open ended", timeout=20.0).split()[2:] == ["DeviceConnectionError", "None"]
+    assert engine.process.wait(10) == 0
     assert workers_of(engine.process.pid) == []
 
 

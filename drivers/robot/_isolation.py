@@ -70,7 +70,9 @@ class WorkerLink:
         self.device = device
         self.script = script
         self._ids = itertools.count(1)
-        self._send_lock = threading.Lock()
+        # Re-entrant: a signal handler may make a call (``stop()``) while this thread is sending. A
+        # message is one write, so the handler's lands before or after it, never inside.
+        self._send_lock = threading.RLock()
         self._shared = _Shared()
         self._process: subprocess.Popen | None = None
         self._conn: Connection | None = None

@@ -100,8 +100,9 @@ class URRobot:
         self.stale_timeout = settings.stale_timeout
         self.upper_range_registers = settings.upper_range_registers
         self._link: WorkerLink | None = None
+        self._opened = False  # the link's open() completed: its worker can answer a polite close
         self._broken: str | None = None
-        self._lifecycle = threading.Lock()
+        self._lifecycle = threading.RLock()  # re-entrant: a signal handler may close() while open() waits
 
     @property
     def worker_pid(self) -> int | None:
@@ -122,8 +123,12 @@ class URRobot:
             link = WorkerLink(self.name, WORKER_SCRIPT)
             self._link = link
             try:
-                link.start()
-                started = time.monotonic()
+                link.start()  # its own typed errors: the worker process did not start or died at once
+            except BaseException:
+                self._discard_link(graceful=False)
+                raise
+            started = time.monotonic()
+            try:
                 link.call("open", "open", (self._worker_settings(),), 6 * self.connect_timeout + 2.0)
             except WorkerFailure as failure:
                 self._discard_link(graceful=False)
@@ -139,6 +144,7 @@ class URRobot:
                 self._discard_link(graceful=False)
                 raise
             self._broken = None
+            self._opened = True
 
     def close(self) -> None:
         """Disconnect the clients and end the worker (killed if it does not exit in time); idempotent."""
@@ -146,11 +152,11 @@ class URRobot:
             self._discard_link(graceful=True)
 
     def _discard_link(self, *, graceful: bool) -> None:
-        link, broken = self._link, self._broken
-        self._link, self._broken = None, None
+        link, broken, opened = self._link, self._broken, self._opened
+        self._link, self._broken, self._opened = None, None, False
         if link is None:
             return
-        if graceful and broken is None and link.death is None:
+        if graceful and opened and broken is None and link.death is None:
             link.close(2 * self.command_timeout + 1.0)
         else:
             link.kill()
