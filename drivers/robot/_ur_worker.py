@@ -69,7 +69,7 @@ class _CallThread:
 
     def __init__(self) -> None:
         self._queue: queue.Queue | None = None
-        self._lock = threading.Lock()  # one control-client command at a time, as the client expects
+        self._lock = threading.Lock()  # guards _queue; its single thread runs one command at a time
 
     def _ensure(self) -> queue.Queue:
         if self._queue is None:
@@ -93,10 +93,13 @@ class _CallThread:
         box: dict[str, Any] = {}
         done = threading.Event()
         with self._lock:
-            self._ensure().put((fn, box, done))
-            if not done.wait(timeout):
-                self._queue = None  # abandon the stuck thread
-                return False, None
+            q = self._ensure()
+            q.put((fn, box, done))
+        if not done.wait(timeout):
+            with self._lock:
+                if self._queue is q:
+                    self._queue = None  # abandon the stuck thread; the next call gets a fresh one
+            return False, None
         if "error" in box:
             raise box["error"]
         return True, box.get("result")
