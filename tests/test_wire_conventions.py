@@ -10,7 +10,8 @@ written from ``docs/rotary_table.md`` and ``docs/interferometer.md`` alone, so a
 - raw GCS lines over TCP (a socket) and over the serial face (pyserial): the documented power-on
   refusal (error 5), servo on, reference move, soft limits (error 7) and answer format;
 - raw CAN frames captured with python-can, decoded here (int40 little-endian, counter, status
-  bits, CRC-8/SAE-J1850), against the interferometer head's true displacement;
+  bits, CRC-8/SAE-J1850), against the interferometer head's true displacement; raw socketcand text
+  read from a plain socket (3-hex-digit ids, ``sec.usec`` receive timestamps in bus order);
 - the driver against the same truth, and the same check run on a driver with its word order
   swapped, its byte order swapped or its scale off (monkeypatched here only) must fail.
 """
@@ -20,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import re
 import socket
 import struct
 import time
@@ -535,6 +537,33 @@ def test_a_command_with_a_bad_crc_is_ignored(ifm_twin, raw_bus):
     assert not [f for f in frames if f.arbitration_id == REPLY_ID]
     assert twin.truth()["datum_generation"] == 0
     assert _command(raw_bus, DATUM, token=10)[3] == 1  # the same command with its CRC right is done
+
+
+# docs/interferometer.md, socketcand: "< hi >" alone, "< ok >" to open and rawmode, then
+# "< frame <3 hex digits> <sec>.<usec> <hex data> >", the timestamp being the frame's receive time on
+# the bus (epoch seconds), in bus order.
+_FRAME = re.compile(rb"< frame ([0-9A-F]{3}) (\d+)\.(\d{6}) ([0-9A-F]*) >")
+
+
+def test_socketcand_text_on_the_wire(ifm_twin):
+    _, twin = ifm_twin
+    endpoint = twin.endpoints["socketcand"]
+    with socket.create_connection((endpoint["host"], endpoint["port"]), timeout=5.0) as sock:
+        assert sock.recv(64) == b"< hi >"
+        sock.sendall(f"< open {endpoint['channel']} >".encode())
+        assert sock.recv(64) == b"< ok >"
+        sock.sendall(b"< rawmode >")
+        assert sock.recv(64) == b"< ok >"
+        text, deadline = b"", time.monotonic() + 0.5
+        while time.monotonic() < deadline:
+            text += sock.recv(65536)
+    frames = _FRAME.findall(text)
+    assert len(frames) > 100 and len(frames) == text.count(b"< frame")
+    stamps = [int(sec) + int(usec) / 1e6 for _, sec, usec, _ in frames]
+    assert all(b > a for a, b in zip(stamps, stamps[1:]))
+    assert abs(stamps[-1] - time.time()) < 1.0
+    displacement = [(int(i, 16), bytes.fromhex(d.decode())) for i, _, _, d in frames if int(i, 16) == DISPLACEMENT_ID]
+    assert displacement and all(_good_crc(can.Message(arbitration_id=i, data=d)) for i, d in displacement)
 
 
 # ----------------------------------------------------------------------- the check has teeth
