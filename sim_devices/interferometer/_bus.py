@@ -1,17 +1,21 @@
 """When a frame the head sends is received on the bus: the timestamps a socketcand daemon forwards.
 
 The real socketcand forwards the receive time the kernel stamped on each frame (``SO_TIMESTAMP``
-of the CAN socket), not a time the sender chose. So a frame's timestamp here is made the way the
-wire makes it:
+of its CAN socket), not a time the sender chose. Here the moment the twin hands a frame to its
+transports stands for the moment the socketcand host's CAN controller has received it, so:
 
-- it leaves when the head's clock thread really sends it (its actual time, with the scheduling
-  jitter the twin really has, not the ideal due time of the sample);
-- it occupies the bus for its length in bits at the bit rate (a standard data frame of ``n``
-  bytes is 47 + 8n bits plus 0..(34 + 8n − 1)/4 stuff bits, and 3 bits of interframe space),
-  queued behind the frame before it: a reply and the sample after it never share a timestamp;
-- the receiving kernel stamps it after its interrupt latency, 5 µs plus an exponential tail with
-  mean ``rx_latency`` (capped at 50 times that), drawn from a seeded stream; frames are received
-  in bus order, so the stamps never go backwards.
+- a frame's timestamp is the clock thread's actual time when it sends it (with the scheduling
+  jitter the twin really has, not the ideal due time of the sample), plus the receiving kernel's
+  interrupt latency: 5 µs and an exponential tail of mean ``rx_latency`` (capped at 50 times
+  that), drawn from a seeded stream;
+- frames cannot be closer together than the bus can carry them: a standard data frame of ``n``
+  bytes takes 47 + 8n bits plus 0..(34 + 8n − 1)/4 stuff bits and 3 bits of interframe space
+  (114..138 µs for 8 bytes at 1 Mbit/s), so a reply and the sample sent right after it, or a
+  burst of samples a late clock thread catches up with, are spread out as the bus spreads them;
+- frames are received in bus order: the stamps never go backwards.
+
+A frame is handed over when it is stamped; only a frame queued behind others on the bus gets a
+stamp a little ahead of the host's clock (by the bus time of the frames before it).
 """
 
 from __future__ import annotations
@@ -40,7 +44,7 @@ class CanBusTiming:
         self._rng = rng
         self.bit_time = 1.0 / float(bitrate)
         self.rx_latency = float(rx_latency)
-        self._bus_free = -np.inf  # epoch time at which the bus is idle again
+        self._received = -np.inf  # when the previous frame was received
         self._last_stamp = -np.inf
         self._lock = threading.Lock()
 
@@ -50,11 +54,10 @@ class CanBusTiming:
         return 47 + 8 * length + int(self._rng.integers(0, (stuffable - 1) // 4 + 1)) + _INTERFRAME_BITS
 
     def receive_time(self, sent: float, length: int) -> float:
-        """Epoch time a receiver's kernel stamps on a frame of ``length`` bytes sent at ``sent``."""
+        """Kernel timestamp (epoch s) of a frame of ``length`` bytes handed over at ``sent`` (epoch s)."""
         with self._lock:
-            start = max(sent, self._bus_free)
-            end = start + self.frame_bits(length) * self.bit_time
-            self._bus_free = end
+            received = max(sent, self._received + self.frame_bits(length) * self.bit_time)
+            self._received = received
             latency = 5e-6 + min(float(self._rng.exponential(self.rx_latency)), 50 * self.rx_latency)
-            self._last_stamp = max(end + latency, self._last_stamp + 1e-6)
+            self._last_stamp = max(received + latency, self._last_stamp + 1e-6)
             return float(self._last_stamp)

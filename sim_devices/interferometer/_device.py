@@ -6,8 +6,8 @@ sample, and the reply is sent before that sample: every displacement frame after
 relative to the new datum.
 
 Every frame carries the time a receiver on the bus would stamp on it (``CanBusTiming``: the clock
-thread's actual send time, the frame's bus time queued behind the previous frame, the receiving
-kernel's latency); socketcand forwards that stamp, as the real daemon forwards the kernel's.
+thread's actual send time plus the receiving kernel's latency, never closer to the previous frame
+than the bus can carry them); socketcand forwards that stamp, as the real daemon forwards the kernel's.
 
 Faults (``FaultKind``, params with defaults; a fault armed with ``count=-1`` fires at every tick
 until cleared):
