@@ -187,8 +187,12 @@ def resolve_procedure_path(name_or_path: str | Path) -> Path:
                        f"built-ins: {', '.join(sorted(KINDS))})"])
 
 
-def load_procedure(path: str | Path, text: str | None = None) -> ProcedureBase:
-    """Parse and validate a procedure file: ``procedure:`` names the kind, whose model checks the rest."""
+def load_procedure(path: str | Path, text: str | None = None, *, stored: bool = False) -> ProcedureBase:
+    """Parse and validate a procedure file: ``procedure:`` names the kind, whose model checks the rest.
+
+    ``stored``: the text of a run already in the store (resumed): rules made for new runs after it
+    was queued (e.g. at least 2 repeats) do not refuse it; the plan-size limit still holds.
+    """
     marked = load_marked(path, text)
     data = marked.data
     if not isinstance(data, dict):
@@ -201,7 +205,7 @@ def load_procedure(path: str | Path, text: str | None = None) -> ProcedureBase:
                            f"{', '.join(KINDS)} ({got})"])
     model = kind.file_model
     try:
-        return model.model_validate(data)
+        return model.model_validate(data, context={"stored": stored})
     except ValidationError as exc:
         raise ConfigError(_problems(exc, marked, model)) from None
 

@@ -2,12 +2,22 @@
 
 Each subcommand lives in its own module ``procedures/_cmd_<name>.py`` exposing
 ``register(subparsers)``; this file only assembles them.
+
+No command prints a traceback: a problem with the input or the run is one line on stderr (exit
+status 1); an unforeseen error is one line naming the file that holds its traceback
+(``<runs folder>/instrument-errors.log``; inside a run, the run's own log has it too). A reader
+that goes away (``instrument runs --json | head``) ends the output quietly.
 """
 
 from __future__ import annotations
 
 import argparse
+import datetime
+import os
 import sys
+import tempfile
+import traceback
+from pathlib import Path
 
 from instrument import __version__
 from procedures import (
@@ -21,9 +31,12 @@ from procedures import (
     _cmd_sim,
     _cmd_validate,
 )
+from procedures._errors import ConfigError, RunError
+from procedures._files import InputRefused
 
 COMMANDS = (_cmd_locate, _cmd_sim, _cmd_validate, _cmd_run, _cmd_resume, _cmd_runs, _cmd_show, _cmd_report,
             _cmd_export)
+ERROR_LOG = "instrument-errors.log"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -38,6 +51,34 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _log_traceback(args: argparse.Namespace | None) -> str:
+    """Append the current exception's traceback to the error log; returns where it went."""
+    runs_dir = getattr(args, "runs_dir", None) or os.environ.get("INSTRUMENT_RUNS", "runs")
+    text = f"--- {datetime.datetime.now().isoformat(timespec='seconds')} instrument {' '.join(sys.argv[1:])}\n" \
+           f"{traceback.format_exc()}\n"
+    for folder in (Path(runs_dir), Path(tempfile.gettempdir())):
+        try:
+            if not folder.is_dir():
+                continue
+            path = folder / ERROR_LOG
+            with open(path, "a", encoding="utf-8") as handle:
+                handle.write(text)
+            return str(path)
+        except OSError:
+            continue
+    return "nowhere (no writable folder)"
+
+
+def _quiet_stdout() -> None:
+    """The reader of our stdout left: point stdout at /dev/null so that the interpreter's final
+    flush does not complain either."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError):
+        pass
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -49,6 +90,20 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:
+        _quiet_stdout()
+        return 0
+    except (ConfigError, RunError, InputRefused) as exc:
+        print(str(exc), file=sys.stderr)
+        return 1
+    except MemoryError:
+        print("instrument: out of memory", file=sys.stderr)
+        return 1
+    except Exception as exc:  # a bug: one line for the user, the traceback in the log
+        where = _log_traceback(args)
+        first = (str(exc).splitlines() or [""])[0][:300]
+        print(f"instrument: internal error: {type(exc).__name__}: {first} (traceback in {where})", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

@@ -75,7 +75,7 @@ def test_calibration_runs_write_records(setup):
 
 def test_displacement_reference_is_interferometer_relative_to_group_start(setup):
     tmp_path, station, cell = setup
-    proc = _procedure(tmp_path, "displacement_calibration", axes="[y]", repeats=1)
+    proc = _procedure(tmp_path, "displacement_calibration", axes="[y]", repeats=2)
     with _engine(tmp_path, station, cell, proc) as engine:
         engine.execute()
         samples = engine.store.samples(engine.run_id)
@@ -234,7 +234,7 @@ def test_interferometer_is_aligned_where_each_line_starts(setup):
         align(axis)
 
     cell.operator.align_interferometer = recording_align
-    proc = _procedure(tmp_path, "displacement_calibration", axes="[y, z]", repeats=1, start_mm=10)
+    proc = _procedure(tmp_path, "displacement_calibration", axes="[y, z]", repeats=2, start_mm=10)
     with _engine(tmp_path, station, cell, proc) as engine:
         assert engine.execute() == "FINISHED"
     for axis, position in aligned_at.items():
