@@ -41,7 +41,7 @@ from procedures._station import StationRuntime
 from procedures._step_context import StationStepContext
 from procedures._store import Lease, RunStore
 from procedures._truth import TruthLog
-from procedures.kinds import RESTING_SETUP, AnalysisContext, ProcedureBase, Setup, Step, kind_of
+from procedures.kinds import RESTING_SETUP, AnalysisContext, PoseReading, ProcedureBase, Setup, Step, kind_of
 
 _MAX_PROBLEMS_SHOWN = 50
 
@@ -201,6 +201,7 @@ class RunEngine:
         to_repeat = self.store.committed_steps(self.run_id) - measured  # failed in an earlier session
         resuming = bool(measured or to_repeat) or stored != RunState.QUEUED
         self.session_failures = 0
+        last_failure = ""
         self.ending = False
         try:
             self.science.configure(self.station.model)
@@ -225,7 +226,7 @@ class RunEngine:
                 self._safe_point()
                 while True:
                     try:
-                        ok = self._do_step(step, context, repeat=step.index in to_repeat)
+                        pose = self._do_step(step, context, repeat=step.index in to_repeat)
                         break
                     except (ProtectiveStop, EmergencyStop) as exc:
                         self.station.safe_state()
@@ -233,11 +234,13 @@ class RunEngine:
                 self._log_hook_failures()
                 if self.lease is not None:
                     self.store.renew_lease(self.lease)
-                self.session_failures += 0 if ok else 1
+                if not pose.ok:
+                    self.session_failures += 1
+                    last_failure = f"{step.key}: {pose.error}"
                 if self.session_failures > self.params.max_failed_samples:
                     raise RunError(f"{self.session_failures} poses could not be measured in this session (limit "
-                                   f"max_failed_samples = {self.params.max_failed_samples}); resume to measure "
-                                   "them again")
+                                   f"max_failed_samples = {self.params.max_failed_samples}; the last: "
+                                   f"{last_failure}); resume to measure them again")
             self._safe_point()
             if self._setup is not None:
                 RESTING_SETUP.establish(self._setup, self.station)  # e.g. the OPR back from the table
@@ -326,7 +329,7 @@ class RunEngine:
         self._emit("setup", setup=str(setup))
         self._setup = setup
 
-    def _do_step(self, step: Step, context: StationStepContext, *, repeat: bool = False) -> bool:
+    def _do_step(self, step: Step, context: StationStepContext, *, repeat: bool = False) -> PoseReading:
         """Move, measure and commit one step; ``repeat``: it failed in an earlier session."""
         t_start = time.time()
         new_setup = step.setup != self._setup
@@ -357,7 +360,7 @@ class RunEngine:
                            reference=reading.reference.get("value"))
         self.hooks.emit(event)
         self._emit_progress(step)
-        return pose.ok
+        return pose
 
     def _emit_progress(self, step: Step) -> None:
         done = len(self.store.committed_steps(self.run_id))

@@ -48,7 +48,8 @@ def _expected(error: ErrorDetails, types: list[Any]) -> str:
         return "required field is missing"
     text = msg[0].lower() + msg[1:] if msg else kind
     if kind not in ("value_error", "assertion_error") and "input" in error:
-        text += f" (got {error['input']!r})"
+        got = repr(error["input"])
+        text += f" (got {got if len(got) <= 80 else got[:60] + f'... ({len(got)} characters)'})"
     return text.replace("value error, ", "")
 
 

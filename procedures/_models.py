@@ -183,7 +183,7 @@ class StationFile(_Strict):
     def _finite_geometry(cls, value: dict[str, Any]) -> dict[str, Any]:
         where = _finite_numbers(value)
         if where:
-            raise ValueError(f"geometry{where}: expected a finite number (got NaN or infinity)")
+            raise ValueError(f"expected finite numbers; {where.lstrip('.')} is NaN or infinite")
         return value
 
     frames: FramesConfig

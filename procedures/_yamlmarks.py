@@ -69,10 +69,13 @@ def load_marked(path: str | Path, text: str | None = None) -> MarkedYaml:
         if node is not None:
             _check_size(node, source)
         data = _construct(node)
+    except ConfigError:
+        raise
     except RecursionError:
         raise ConfigError([f"{source}:1: YAML: nested too deeply (at most {MAX_DEPTH} levels)"]) from None
     except ValueError as exc:  # a scalar the constructor cannot convert (an integer of 5000 digits ...)
-        raise ConfigError([f"{source}:1: YAML: {_first_line(exc)}"]) from None
+        what = "an integer with too many digits" if "digits" in str(exc) else _first_line(exc)
+        raise ConfigError([f"{source}:1: YAML: {what}"]) from None
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark or exc.context_mark
         line = mark.line + 1 if mark else 1

@@ -5,14 +5,17 @@ Each subcommand lives in its own module ``procedures/_cmd_<name>.py`` exposing
 
 No command prints a traceback: a problem with the input or the run is one line on stderr (exit
 status 1); an unforeseen error is one line naming the file that holds its traceback
-(``<runs folder>/instrument-errors.log``; inside a run, the run's own log has it too). A reader
-that goes away (``instrument runs --json | head``) ends the output quietly.
+(``<runs folder>/instrument-errors.log``; inside a run, the run's own log has it too). What the
+client libraries log (python-can logs a lost connection with its traceback) goes to that file
+too, not to the terminal. A reader that goes away (``instrument runs --json | head``) ends the
+output quietly.
 """
 
 from __future__ import annotations
 
 import argparse
 import datetime
+import logging
 import os
 import sys
 import tempfile
@@ -51,22 +54,41 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _error_log(args: argparse.Namespace | None) -> Path:
+    """The error log: in the runs folder if there is one, else in the temporary folder."""
+    runs_dir = Path(getattr(args, "runs_dir", None) or os.environ.get("INSTRUMENT_RUNS", "runs"))
+    folder = runs_dir if runs_dir.is_dir() and os.access(runs_dir, os.W_OK) else Path(tempfile.gettempdir())
+    return folder / ERROR_LOG
+
+
 def _log_traceback(args: argparse.Namespace | None) -> str:
     """Append the current exception's traceback to the error log; returns where it went."""
-    runs_dir = getattr(args, "runs_dir", None) or os.environ.get("INSTRUMENT_RUNS", "runs")
+    path = _error_log(args)
     text = f"--- {datetime.datetime.now().isoformat(timespec='seconds')} instrument {' '.join(sys.argv[1:])}\n" \
            f"{traceback.format_exc()}\n"
-    for folder in (Path(runs_dir), Path(tempfile.gettempdir())):
+    try:
+        with open(path, "a", encoding="utf-8") as handle:
+            handle.write(text)
+    except OSError:
+        return "nowhere (the error log could not be written)"
+    return str(path)
+
+
+class _LibraryLog(logging.Handler):
+    """Client libraries' warnings and errors, appended to the error log (opened per record: the
+    runs folder may appear only once the command has started)."""
+
+    def __init__(self, args: argparse.Namespace) -> None:
+        super().__init__(logging.WARNING)
+        self.args = args
+        self.setFormatter(logging.Formatter("%(asctime)s %(name)s %(levelname)s: %(message)s"))
+
+    def emit(self, record: logging.LogRecord) -> None:
         try:
-            if not folder.is_dir():
-                continue
-            path = folder / ERROR_LOG
-            with open(path, "a", encoding="utf-8") as handle:
-                handle.write(text)
-            return str(path)
-        except OSError:
-            continue
-    return "nowhere (no writable folder)"
+            with open(_error_log(self.args), "a", encoding="utf-8") as handle:
+                handle.write(self.format(record) + "\n")
+        except Exception:
+            pass  # logging must never stop a measurement
 
 
 def _quiet_stdout() -> None:
@@ -85,6 +107,15 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "handler", None):
         parser.print_help()
         return 2
+    library_log = _LibraryLog(args)
+    logging.getLogger().addHandler(library_log)  # instead of Python's last-resort print to stderr
+    try:
+        return _run(args)
+    finally:
+        logging.getLogger().removeHandler(library_log)
+
+
+def _run(args: argparse.Namespace) -> int:
     try:
         return int(args.handler(args) or 0)
     except KeyboardInterrupt:

@@ -122,7 +122,7 @@ def analyse_calibration(samples: Sequence[Sample], ctx: AnalysisContext, *, kind
     if not data:
         raise ValueError("no successful calibration samples to fit")
     for rows in data.values():
-        split_datum_groups(rows)
+        join_datums(rows)
     fit = ctx.science.fit_calibration(kind, data, {
         "run_id": ctx.run_id, "date": time.strftime("%Y-%m-%dT%H:%M:%S"),
         "references": [{"instrument": reference_instrument, "components": sorted(data)}]})
@@ -137,29 +137,58 @@ def analyse_calibration(samples: Sequence[Sample], ctx: AnalysisContext, *, kind
     return Analysis(results=results, calibration_record_id=fit.record_id)
 
 
-def split_datum_groups(rows: list[dict[str, Any]]) -> None:
-    """Make each reference datum of a group its own calibration group, in place.
+def join_datums(rows: list[dict[str, Any]]) -> None:
+    """Bring every reference datum of a group onto the group's first one, in place.
 
     A group whose reference was re-established (``datum_set_at`` differs between its rows, see
-    ``displacement_calibration``) holds rows with different, unknown offsets: exactly what the
-    calibration's group alignment estimates per group. Then every (group, datum) becomes a group,
-    numbered from the largest (the alignment's reference) down; ``plan_group`` and ``datum`` (0 for
-    a group's first datum) keep where each row came from. Rows of groups with one datum each keep
-    their numbers.
+    ``displacement_calibration``) holds rows whose references are offset by an unknown amount: the
+    robot's repeatability where it was zeroed again (~10 µm). At one calibration point the
+    instrument's systematic error is the same under both datums, so the offset is the mean, over
+    the points measured under both, of the difference of (reference − measured) between them. The
+    later datum's references are shifted by it (``datum_offset``; ``reference_raw`` keeps the
+    value read; ``datum``: 0 for the first datum, 1 for the next ...), and the group keeps its
+    repeats, as the calibration's noise floor needs. A datum that shares no point with the earlier
+    ones (only possible with a single repeat) becomes a calibration group of its own instead, whose
+    offset the group alignment estimates.
     """
-    segments: dict[tuple[int, float], list[dict[str, Any]]] = {}
+    by_group: dict[int, dict[float, list[dict[str, Any]]]] = {}
     for row in rows:
         stamp = row.pop("datum_set_at", None)
-        segments.setdefault((row["group"], -1.0 if stamp is None else float(stamp)), []).append(row)
-    if len(segments) == len({group for group, _ in segments}):
-        return
-    for group in {group for group, _ in segments}:
-        for ordinal, key in enumerate(sorted(k for k in segments if k[0] == group)):
-            for row in segments[key]:
-                row["plan_group"], row["datum"] = group, ordinal
-    for new_group, key in enumerate(sorted(segments, key=lambda k: (-len(segments[k]), k))):
-        for row in segments[key]:
-            row["group"] = new_group
+        by_group.setdefault(row["group"], {}).setdefault(-1.0 if stamp is None else float(stamp), []).append(row)
+    next_group = max(by_group, default=-1) + 1
+    for segments in by_group.values():
+        if len(segments) == 1:
+            continue
+        joined: list[dict[str, Any]] = []
+        for ordinal, stamp in enumerate(sorted(segments)):  # in the order the datums were set
+            segment = segments[stamp]
+            offset = _datum_offset(joined, segment) if joined else 0.0
+            for row in segment:
+                row["datum"] = ordinal
+                if offset is None:
+                    row["group"] = next_group
+                    continue
+                row["reference_raw"], row["datum_offset"] = row["reference"], offset
+                row["reference"] = row["reference"] - offset
+            if offset is None:
+                next_group += 1
+            else:
+                joined += segment
+
+
+def _datum_offset(earlier: list[dict[str, Any]], later: list[dict[str, Any]]) -> float | None:
+    """How much the ``later`` rows' references read above the ``earlier`` ones' (see ``join_datums``)."""
+    def per_point(rows: list[dict[str, Any]]) -> dict[int, float]:
+        values: dict[int, list[float]] = {}
+        for row in rows:
+            values.setdefault(row["point"], []).append(row["reference"] - row["measured"])
+        return {point: float(np.mean(v)) for point, v in values.items()}
+
+    before, after = per_point(earlier), per_point(later)
+    common = sorted(set(before) & set(after))
+    if not common:
+        return None
+    return float(np.mean([after[p] - before[p] for p in common]))
 
 
 def calibration_summary_lines(results: Mapping[str, Any]) -> list[str]:

@@ -10,7 +10,9 @@ re-aimed (which every resume does). So a datum is trusted only within the sessio
 measured again, or a ``DatumLost``/``BeamInterrupted`` while reading — **re-establishes** it: the
 robot returns to the group's first point, the interferometer is zeroed there, the robot goes back
 to the step. Every sample records its datum (``reference.datum_set_at``, ``datum_reestablished``)
-and the run log says when one was re-established. The robot never returns to a point exactly
+and the run log says when one was re-established. A ``FeedGap`` or a lost feed connection (the
+driver reconnects by itself) is read again after a back-off: the head keeps its count meanwhile, and
+the driver says ``DatumLost`` if it did not. The robot never returns to a point exactly
 (repeatability ~10 µm), so each datum is its own offset: the analysis treats the samples of each
 datum as their own calibration group, whose offset the group alignment estimates.
 """
@@ -25,6 +27,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import Field, ValidationInfo, field_validator, model_validator
 
+from drivers import DeviceConnectionError
 from drivers.interferometer import BeamInterrupted, FeedGap
 from procedures._geometry import translated_in_frame
 from procedures._models import StationFile, Vec3
@@ -150,7 +153,9 @@ class DisplacementCalibrationKind:
                 ctx.log("datum_lost", f"{step.key}: {exc}")
                 ctx.wait(retry_wait(params, attempt))
                 datum = self._reestablish(step, params, ctx, why=f"the datum was lost ({exc.cause})")
-            except FeedGap as exc:  # samples missing from the window; the datum itself is kept by the head
+            except (FeedGap, DeviceConnectionError) as exc:
+                # Samples missing from the window, or the feed's connection down (the driver reconnects
+                # by itself): the head keeps counting, so the datum stands (a DatumLost would say otherwise).
                 if attempt == READ_ATTEMPTS - 1:
                     raise
                 ctx.log("feed_gap", f"{step.key}: {exc}; reading again")
