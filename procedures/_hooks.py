@@ -128,7 +128,8 @@ def run_shell(spec: HookSpec, command: str, event: dict) -> None:
             raise HookFailed(f"shell command exited with status {status}" + (f": {tail}" if tail else ""))
 
 
-def _shutdown(connection: http.client.HTTPConnection) -> None:
+def _shutdown(connection: http.client.HTTPConnection, expired: threading.Event) -> None:
+    expired.set()
     sock = connection.sock
     if sock is not None:
         try:
@@ -145,8 +146,10 @@ def run_http(spec: HookSpec, url: str, event: dict) -> None:
     body = json.dumps(event).encode()
     deadline = time.monotonic() + spec.timeout_s
     connection = http.client.HTTPConnection(host, parsed.port or 80, timeout=spec.timeout_s)
-    # The socket's timeout bounds each read; this timer bounds the whole exchange.
-    timer = threading.Timer(spec.timeout_s, _shutdown, args=(connection,))
+    # The socket's timeout bounds each read; this timer bounds the whole exchange (a shut-down
+    # socket reads as the end of the answer, so whether it fired is checked at the end too).
+    expired = threading.Event()
+    timer = threading.Timer(spec.timeout_s, _shutdown, args=(connection, expired))
     timer.daemon = True
     timer.start()
     try:
@@ -161,12 +164,14 @@ def run_http(spec: HookSpec, url: str, event: dict) -> None:
             if not chunk:
                 break
             received += len(chunk)
+        if expired.is_set():
+            raise OSError("deadline")
         if received > MAX_RESPONSE_BYTES:
             raise HookFailed(f"answer from {url} longer than {MAX_RESPONSE_BYTES} bytes: not read further")
         if response.status >= 400:
             raise HookFailed(f"HTTP {response.status} from {url}")
     except (OSError, http.client.HTTPException) as exc:
-        if time.monotonic() >= deadline - 0.01:
+        if expired.is_set() or time.monotonic() >= deadline - 0.01:
             raise HookFailed(f"POST {url}: no complete answer within {spec.timeout_s} s (connection closed)") \
                 from None
         raise HookFailed(f"POST {url} failed: {type(exc).__name__}: {exc}") from None
@@ -197,6 +202,8 @@ class _HookWorker:
         self.call = _caller(spec)
         self.report = report
         self.queue: queue.Queue[Any] = queue.Queue(maxsize=QUEUE_CAPACITY)
+        self.current: dict | None = None  # the event being delivered
+        self.closed = False  # stop() has given up on the worker; it reports nothing more
         self.thread = threading.Thread(target=self._run, name=f"hooks: {describe(spec)}", daemon=True)
         self.thread.start()
 
@@ -212,10 +219,14 @@ class _HookWorker:
             event = self.queue.get()
             if event is _STOP:
                 return
+            self.current = event
             try:
                 self.call(event)
             except Exception as exc:  # a hook never stops the run
-                self.report(f"hook {describe(self.spec)!r} on {event.get('event')}: {exc}", event)
+                if not self.closed:
+                    self.report(f"hook {describe(self.spec)!r} on {event.get('event')}: {exc}", event)
+            finally:
+                self.current = None
 
     def stop(self, deadline: float) -> None:
         """Let the thread finish what is queued until ``deadline`` (monotonic); report the rest."""
@@ -233,6 +244,11 @@ class _HookWorker:
                 self.report(f"hook {describe(self.spec)!r} on {event.get('event')}: not delivered: "
                             "the run ended while earlier calls were still waiting", event)
         if self.thread.is_alive():
+            self.closed = True
+            current = self.current
+            if current is not None:
+                self.report(f"hook {describe(self.spec)!r} on {current.get('event')}: still running when the run "
+                            "ended; its outcome is unknown", current)
             self.queue.put_nowait(_STOP)  # room was made above; the thread ends after its current call
 
 
