@@ -184,6 +184,8 @@ def resolve_procedure_path(name_or_path: str | Path) -> Path:
     for candidate in (PACKAGE_DIR / f"{name_or_path}.yaml", PACKAGE_DIR / str(name_or_path)):
         if candidate.is_file():
             return candidate
+    if path.exists():  # a folder, FIFO or device: the reader says why it is no procedure file
+        return path
     raise ConfigError([f"{name_or_path}: no such procedure file (and no built-in procedure of that name; "
                        f"built-ins: {', '.join(sorted(KINDS))})"])
 
