@@ -7,10 +7,12 @@ image). A file that cannot be read, decoded or measured is one line naming it (e
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import stat
 import sys
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -24,6 +26,24 @@ def register(subparsers) -> None:
     parser.add_argument("--json", action="store_true", help="one JSON object per image")
     parser.add_argument("--saturation", type=int, default=None, help="saturation level (default by dtype)")
     parser.set_defaults(handler=run)
+
+
+@contextlib.contextmanager
+def _native_stderr_quiet() -> Iterator[None]:
+    """Silence what C libraries write to file descriptor 2 meanwhile (Python's own stderr is kept)."""
+    try:
+        saved = os.dup(2)
+    except OSError:
+        yield
+        return
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, 2)
+        os.close(devnull)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
 
 
 def _read_image(name: str):
@@ -40,7 +60,8 @@ def _read_image(name: str):
         return f"image file of {info.st_size} bytes; at most {MAX_IMAGE_BYTES} are read"
     try:
         data = np.fromfile(name, dtype=np.uint8, count=MAX_IMAGE_BYTES + 1)
-        image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+        with _native_stderr_quiet():  # libpng & co. print their own complaint; ours is the one line
+            image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
     except (OSError, cv2.error) as exc:
         return f"cannot decode image file: {(str(exc).strip().splitlines() or [type(exc).__name__])[-1]}"
     if image is None:
