@@ -26,7 +26,8 @@ def run(args) -> int:
         if r is None:
             return 1
         samples = store.samples(r["id"])
-        text = export_csv(samples) if args.csv else export_json(r, samples, store.events(r["id"]))
+        text = export_csv(samples) if args.csv else export_json(r, samples, store.events(r["id"]),
+                                                                store.superseded_samples(r["id"]))
     if args.output:
         write_output(args.output, text)
     else:

@@ -22,7 +22,7 @@ def run(args) -> int:
         r = find_run(store, args.run_id)
         if r is None:
             return 1
-        html = render_report(r, store.samples(r["id"]), store.events(r["id"]))
+        html = render_report(r, store.samples(r["id"]), store.events(r["id"]), store.superseded_samples(r["id"]))
         path = Path(args.output) if args.output else store.run_dir(r["id"]) / "report.html"
     write_output(path, html)
     print(path)

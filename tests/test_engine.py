@@ -1,5 +1,6 @@
 """The engine on the fake cell: the three procedures, dry run, pause/resume, protective stop, abort."""
 
+import json
 import threading
 import time
 
@@ -9,6 +10,7 @@ import pytest
 from procedures._api import open_engine
 from procedures._errors import RunError
 from procedures._geometry import tcp_in_m
+from procedures._report import export_json, render_report
 from tests.fakes import REFERENCE_TCP, FakeCell, FakeScience, write_station
 
 
@@ -260,7 +262,11 @@ def test_failed_poses_are_measured_again_on_resume_and_kept_as_superseded(setup)
         samples = engine.store.samples(run["id"])
         superseded = engine.store.superseded_samples(run["id"])
         events = engine.store.events(run["id"])
+        finished = engine.store.get_run(run["id"])
     assert [s.step_index for s in samples] == list(range(15)) and all(s.ok for s in samples)
+    exported = json.loads(export_json(finished, samples, events, superseded))
+    assert [s["step_key"] for s in exported["superseded_samples"]] == ["transform/c000/P1"]
+    assert "measured again later" in render_report(finished, samples, events, superseded)
     assert [(s.step_index, s.ok) for s in superseded] == [(0, False)]  # the failure is kept, not lost
     assert "no cross found" in superseded[0].error
     assert any(e["kind"] == "remeasured" and e["message"].startswith("transform/c000/P1") for e in events)
