@@ -204,7 +204,7 @@ def test_keyboard_interrupt_during_a_move_aborts(setup):
 def test_failed_measurements_are_recorded_with_their_frames(setup):
     tmp_path, station, cell = setup
     cell.fail_measures = 3  # the first pose fails on every attempt (retries_per_pose = 2)
-    proc = _procedure(tmp_path, "iso9283_repeatability", cycles=2)
+    proc = _procedure(tmp_path, "iso9283_repeatability", cycles=2, retry_backoff_s=0)
     with _engine(tmp_path, station, cell, proc) as engine:
         assert engine.execute() == "FINISHED"
         samples = engine.store.samples(engine.run_id)
