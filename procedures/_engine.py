@@ -130,7 +130,7 @@ class RunEngine:
         self.lease = lease
         self.state = RunState(store.get_run(run_id)["state"])
         self.resumes = 0  # pauses this session has come back from (the Ctrl-C handler counts presses per resume)
-        self.ending = False  # the session is being ended (an abort or failure is being recorded)
+        self.ending = False  # the session is being ended (its outcome is being recorded, or is)
         self.session_failures = 0
         self._pause_request = threading.Event()
         self._pause_reason = "operator request"
@@ -258,6 +258,7 @@ class RunEngine:
                 self._log("traceback", traceback.format_exc())
             self._end(RunState.FAILED, str(exc) if expected else f"{type(exc).__name__}: {exc}", "run_failed")
         finally:
+            self.ending = True  # the outcome is stored: a late SIGTERM must not cut the hooks' last words
             self.hooks.close()  # bounded by the longest hook deadline; undelivered events are reported
             self._log_hook_failures()
         return self.state
