@@ -119,10 +119,11 @@ def test_a_second_resume_of_a_running_run_is_refused_in_one_line(tmp_path):
     station = write_station(tmp_path / "station.yaml")
     procedure = tmp_path / "iso.yaml"
     procedure.write_text("procedure: iso9283_repeatability\n"
-                         "parameters: {cycles: 4, settle_time_s: 0, frames_per_pose: 1}\n")
+                         "parameters: {cycles: 30, settle_time_s: 0, frames_per_pose: 1}\n")
     runs = tmp_path / "runs"
+    # 155 steps of 0.3 s: the holder is still running whatever the load; it is killed once checked.
     holder = subprocess.Popen(
-        [sys.executable, "-m", "tests.fakes", str(runs), str(station), str(procedure), "--move-delay", "0.1"],
+        [sys.executable, "-m", "tests.fakes", str(runs), str(station), str(procedure), "--move-delay", "0.3"],
         cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )
     try:
@@ -144,16 +145,15 @@ def test_a_second_resume_of_a_running_run_is_refused_in_one_line(tmp_path):
                              operator=cell.operator):
                 pass
         assert cell.moves == 0
-        out, err = holder.communicate(timeout=60)
+        assert holder.poll() is None, "the holder ended before the checks: they proved nothing"
     finally:
-        if holder.poll() is None:
-            holder.kill()
-            holder.communicate()
-    assert out.strip().endswith("FINISHED"), err
+        holder.kill()  # our own child, by its handle
+        holder.communicate()
     with RunStore(runs) as store:
-        assert store.get_run(run_id)["state"] == RunState.FINISHED
-        assert [s.step_index for s in store.samples(run_id)] == list(range(25))
-        assert store.lease_holder(run_id) is None  # released at the end
+        assert store.get_run(run_id)["state"] == RunState.RUNNING  # the refused processes changed nothing
+        done = [s.step_index for s in store.samples(run_id)]
+        assert done == list(range(len(done)))
+        assert store.lease_holder(run_id) is None  # its holder is dead: the next resume takes it over
 
 
 def test_resume_of_an_unknown_or_pattern_id_is_one_line(tmp_path, capsys):
