@@ -19,6 +19,7 @@ from drivers.camera import Frame, GrabFailed
 from drivers.interferometer import Interferometer
 from drivers.robot import MotionEnvelope, Robot
 from drivers.rotary_table import RotaryTable
+from procedures._live_frames import write_live_frames
 from procedures._science import COMPONENTS, Compensator, MeasurementFailed, PoseMeasurement, Science
 from procedures._station import StationRuntime
 from procedures.kinds import MotionParameters, PoseReading, Step, retry_wait
@@ -103,7 +104,11 @@ class StationStepContext:
                 self._log("measure_failed", f"{step.key}: {last_error}")
                 if p.save_frames != "never":
                     frames_saved += self._save_frames(step, triples, f"failed{attempt}")
+                if triples:  # the live view shows what the cameras saw, even when no cross was found
+                    write_live_frames(self._run_dir, step.index, step.key, {s: f.image for s, f in triples[-1].items()})
                 continue
+            write_live_frames(self._run_dir, step.index, step.key, {s: f.image for s, f in triples[-1].items()},
+                              measurements[-1].crosses)
             if p.save_frames == "always":
                 frames_saved += self._save_frames(step, triples, "ok")
             stamps = [f.timestamp for t in triples for f in t.values()]

@@ -22,7 +22,7 @@ import yaml
 
 from drivers.camera import Frame, GrabFailed
 from drivers.interferometer import DatumLost
-from drivers.robot import MotionEnvelope, ProtectiveStop, RobotState
+from drivers.robot import MotionEnvelope, ProtectiveStop, RobotIdentity, RobotState
 from drivers.rotary_table import TableState
 from procedures._geometry import euler_to_matrix, matrix_to_euler, tcp_in_m, ur_to_matrix
 from procedures._science import CalibrationResult, MeasurementFailed, PoseMeasurement
@@ -128,6 +128,18 @@ class FakeRobot:
         self.connected = False
         self.envelope = MotionEnvelope.from_dict(station_dict()["envelope"])
         self.tcp = np.zeros(6)
+        self.payload = (0.0, np.zeros(3))
+
+    def identity(self) -> RobotIdentity:
+        return RobotIdentity(manufacturer="Universal Robots", model="UR5", serial_number="20235500123",
+                             controller_version="5.15.0.0")
+
+    def set_payload(self, mass_kg: float, cog_m) -> None:
+        cog = np.asarray(cog_m, dtype=float)
+        if not (np.isfinite(mass_kg) and mass_kg >= 0) or cog.shape != (3,) or not np.all(np.isfinite(cog)):
+            raise ValueError(f"robot: payload must be a finite mass >= 0 kg and 3 finite numbers (m), "
+                             f"got {mass_kg!r}, {cog_m!r}")
+        self.payload = (float(mass_kg), cog.copy())
 
     def set_tcp(self, offset) -> None:
         self.tcp = np.asarray(offset, dtype=float).copy()
@@ -137,7 +149,6 @@ class FakeRobot:
 
     def open(self) -> None:
         self.connected = True
-
 
     def close(self) -> None:
         self.connected = False
