@@ -503,9 +503,9 @@ def test_can_frames_decode_to_the_true_displacement(ifm_twin, raw_bus, move):
 
     displacement = [f for f in frames if f.arbitration_id == DISPLACEMENT_ID]
     assert len(displacement) >= 50 and all(_good_crc(f) and not f.is_extended_id for f in displacement)
-    # Sign, byte order and scale: every frame is the true displacement (scale error included) plus
-    # the head's noise (2 nm rms; 6 σ) and the rounding to a count.
-    expected = (1.0 + truth["scale_error"]) * truth["true_displacement"]
+    # Sign, byte order and scale: every frame is the true displacement (scale error and the air's
+    # n/n_nominal included) plus the head's noise (2 nm rms; 6 σ) and the rounding to a count.
+    expected = (1.0 + truth["scale_error"]) * truth["refraction_ratio"] * truth["true_displacement"]
     assert abs(expected - move) < 1e-6  # the truth itself: the reflector moved by ``move`` along the beam
     bound = 6 * twin.config.noise_std + RESOLUTION
     assert all(abs(_displacement(bytes(f.data)) - expected) <= bound for f in displacement)
@@ -584,7 +584,8 @@ def _interferometer_error(ifm, world: World, twin: InterferometerTwin, move: flo
         measured = ifm.average(0.1)
         moved = world.opr_in_m()[:3, 3] - start
         truth = twin.truth()
-        expected = (1.0 + truth["scale_error"]) * sum(u * d for u, d in zip(truth["beam_direction"], moved))
+        expected = (1.0 + truth["scale_error"]) * truth["refraction_ratio"] * sum(
+            u * d for u, d in zip(truth["beam_direction"], moved))
         samples = round(0.1 * twin.config.layout.sample_rate)
         bound = 6 * twin.config.noise_std / math.sqrt(samples) + 2 * RESOLUTION
         return abs(measured - expected), bound
