@@ -598,13 +598,14 @@ def test_environment_frames_decode_to_the_twins_air(env_twin, env_bus):
     for air_frame, material_frame in pairs:
         air, material = bytes(air_frame.data), bytes(material_frame.data)
         truth = model.at(air_frame.timestamp - unit["origin"])
-        # Half a count of each field, and a little for the air's drift between sending and reading.
-        assert abs(_u16(air, 0) / 1000 - (truth.air_temperature_c + offsets["air_temperature"])) <= 0.0006
+        # Half a count of each field, plus the air's drift over up to 2 s between the twin's sending and
+        # python-can's reading (slcan frames are stamped on reading): at most 4.6e-4 K/s, 0.02 Pa/s, 0.003 %/s.
+        assert abs(_u16(air, 0) / 1000 - (truth.air_temperature_c + offsets["air_temperature"])) <= 0.0014
         assert abs(_u16(air, 1) + 60_000 - (truth.pressure_pa + offsets["pressure"])) <= 0.6
-        assert abs(_u16(air, 2) / 100 - (truth.relative_humidity_percent + offsets["humidity"])) <= 0.006
+        assert abs(_u16(air, 2) / 100 - (truth.relative_humidity_percent + offsets["humidity"])) <= 0.011
         for index in range(2):
             expected = truth.material_temperatures_c[index] + offsets[f"material{index + 1}"]
-            assert abs(_u16(material, index) / 1000 - expected) <= 0.0006
+            assert abs(_u16(material, index) / 1000 - expected) <= 0.0014
         assert _u16(material, 2) == NO_READING  # the third sensor is not fitted: no reading, no fault
         assert air[6] & 0x0F == 0 and material[6] & 0x0F == 0
 
