@@ -17,7 +17,7 @@ from pydantic import Field
 from instrument.iso9283 import iso_cube_points
 from procedures._geometry import euler_to_matrix, matrix_to_euler, tcp_in_m, translated_in_frame, ur_to_matrix
 from procedures._models import StationFile, Vec3
-from procedures._report_sections import iso_results_html
+from procedures._report_sections import iso_results_html, iso_summary_lines
 from procedures._science import COMPONENTS
 from procedures._store import Sample
 from procedures.kinds._parameters import MotionParameters, ProcedureBase
@@ -86,14 +86,7 @@ class Iso9283RepeatabilityKind:
         return iso_results_html(results)
 
     def summary_lines(self, results: Mapping[str, Any]) -> list[str]:
-        lines = ["point  n    RP_l (µm)  RP_a (°)   RP_b (°)   RP_c (°)   AP_P (µm)"]
-        for label in results["order"]:
-            entry = results["points"][label]
-            s = entry.get("stats")
-            if s:
-                lines.append(f"{label:<5} {entry['n']:>3}  {s['rp_l'] * 1e6:9.2f}  {np.degrees(s['rp_a']):9.5f}  "
-                             f"{np.degrees(s['rp_b']):9.5f}  {np.degrees(s['rp_c']):9.5f}  {s['ap_p'] * 1e6:9.2f}")
-        return lines
+        return iso_summary_lines(results)
 
 
 def _measured(sample: Sample) -> np.ndarray:
