@@ -26,7 +26,7 @@ pre.inline{margin:0;padding:0;background:none}
 .banner.warn{border-color:#b86e00;background:#fff8ec}.banner.warn b{color:#8a5200}
 tr.total td{border-top:2px solid #888}
 .plots{display:flex;flex-wrap:wrap;gap:4px;break-inside:avoid}.plots svg{flex:0 0 auto}
-table.signoff{width:100%}table.signoff td{height:3.6em}table.signoff th.l:first-child{width:7em}
+table.signoff{width:100%}table.signoff td{height:3.6em}table.signoff th{white-space:nowrap}
 table.signoff td.sign{width:32%}
 .events td{font-size:.85em}
 """
