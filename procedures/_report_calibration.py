@@ -94,10 +94,10 @@ def _before_after_html(results: Mapping[str, Any]) -> str:
             "<b>In-sample</b>: the record's correction on the data it was fitted on (it shows the fit). "
             "<b>Held-out</b>: each point predicted by a fit without it (leave-one-point-out; the end points are "
             "never held out): what to expect between calibration points.</caption>"
-            "<tr><th class=l rowspan=2>component</th><th rowspan=2>group</th><th rowspan=2>n</th>"
+            "<thead><tr><th class=l rowspan=2>component</th><th rowspan=2>group</th><th rowspan=2>n</th>"
             "<th colspan=2>before</th><th colspan=2>after, in-sample</th><th colspan=2>after, held-out</th>"
             "<th class=l rowspan=2>unit</th></tr><tr><th>RMS</th><th>max</th><th>RMS</th><th>max</th><th>RMS</th>"
-            "<th>max</th></tr>" + "".join(rows) + "</table>")
+            "<th>max</th></tr></thead><tbody>" + "".join(rows) + "</tbody></table>")
 
 
 def _evaluation(results: Mapping[str, Any]) -> Mapping[str, Any]:
@@ -222,8 +222,9 @@ def _truth_html(results: Mapping[str, Any]) -> str:
     return ("<h3>Reference against simulated truth</h3><table class=cal><caption>Reference − true, per group: the "
             "group's datum (where its reference reads zero in the cell's absolute frame: an offset, not an error) "
             "and the scatter about it (the reference's own error, comparable with the residuals above)</caption>"
-            "<tr><th class=l>component</th><th>group</th><th>n</th><th>datum offset</th><th>RMS about the datum</th>"
-            "<th>max about the datum</th><th class=l>unit</th></tr>" + "".join(rows) + "</table>")
+            "<thead><tr><th class=l>component</th><th>group</th><th>n</th><th>datum offset</th>"
+            "<th>RMS about the datum</th><th>max about the datum</th><th class=l>unit</th></tr></thead><tbody>"
+            + "".join(rows) + "</tbody></table>")
 
 
 def _fit_summary_html(results: Mapping[str, Any]) -> str:
@@ -280,13 +281,15 @@ def _plots(results: Mapping[str, Any]) -> str:
         panels = [("before", before)]
         panels.append(("after, held-out", held_out) if held_out.size == measured.size
                       else ("after, in-sample", in_sample))
+        pair = []
         for title, errors in panels:
             if errors.size != measured.size:
                 continue
             series = [(f"group {int(g)}", measured[groups == g] * value_scale, errors[groups == g] * unit.scale)
                       for g in np.unique(groups)]
-            plots.append(scatter(series, title=f"{name}: error {title}", xlabel=f"measured {name} ({value_unit})",
-                                 ylabel=f"error ({unit.symbol})", zero_line=True))
+            pair.append(scatter(series, title=f"{name}: error {title}", xlabel=f"measured {name} ({value_unit})",
+                                ylabel=f"error ({unit.symbol})", zero_line=True))
+        plots.append(f"<div class='plots series' data-component='{escape(name)}'>{''.join(pair)}</div>")
     return "".join(plots)
 
 
@@ -300,7 +303,7 @@ def calibration_results_html(results: Mapping[str, Any]) -> str:
         + _before_after_html(results) + _heldout_html(results) + _truth_html(results) + _fit_summary_html(results)
         + "</section>"
         + (f"<section class=part id=plots><h2>Calibration curves</h2><p class=note>Error against the measured value, "
-           f"per group, each group's datum removed.</p><div class=plots>{plots}</div></section>" if plots else "")
+           f"per group, each group's datum removed.</p>{plots}</section>" if plots else "")
     )
 
 

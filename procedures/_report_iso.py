@@ -118,7 +118,8 @@ def _point_table(results: Mapping[str, Any], keys: Sequence[str], caption: str) 
         worst.append(cell[: -len("</td>")] + f"<br><small>at {escape(label)}</small></td>")
     rows.append(f"<tr class=worst><td class=l>worst case</td><td></td>{''.join(worst)}</tr>")
     return (f"<table class=figures><caption>{caption}</caption>"
-            f"<tr><th class=l>point</th><th>n</th>{_head(keys)}</tr>{''.join(rows)}</table>")
+            f"<thead><tr><th class=l>point</th><th>n</th>{_head(keys)}</tr></thead><tbody>{''.join(rows)}</tbody>"
+            "</table>")
 
 
 def _owner_table(results: Mapping[str, Any], group: str, keys: Sequence[str], caption: str, owner_name: str) -> str:
@@ -134,8 +135,8 @@ def _owner_table(results: Mapping[str, Any], group: str, keys: Sequence[str], ca
         rows.append(f"<tr><td class=l>{escape(str(owner))}</td>{cells}</tr>")
     if not rows:
         return ""
-    return (f"<table class=figures><caption>{caption}</caption><tr><th class=l>{owner_name}</th>{_head(keys)}</tr>"
-            + "".join(rows) + "</table>")
+    return (f"<table class=figures><caption>{caption}</caption><thead><tr><th class=l>{owner_name}</th>"
+            f"{_head(keys)}</tr></thead><tbody>" + "".join(rows) + "</tbody></table>")
 
 
 def _uncertainty(results: Mapping[str, Any]) -> Mapping[str, Any]:
@@ -186,10 +187,10 @@ def _budget_html(results: Mapping[str, Any]) -> str:
     return ("<h3>Uncertainty budget</h3><table class=budget><caption>Standard uncertainty (k = 1) of each source "
             "per pose component; propagated to every figure by "
             + escape(str(method or "Monte Carlo through the ISO 9283 formulas")) + f"{draws}</caption>"
-            "<tr><th class=l>term and source</th><th class=l>correlation</th><th class=l>distribution</th>"
+            "<thead><tr><th class=l>term and source</th><th class=l>correlation</th><th class=l>distribution</th>"
             "<th>dof</th><th>u<sub>x</sub> (µm)</th><th>u<sub>y</sub> (µm)</th><th>u<sub>z</sub> (µm)</th>"
-            "<th>u<sub>a</sub> (″)</th><th>u<sub>b</sub> (″)</th><th>u<sub>c</sub> (″)</th></tr>"
-            + "".join(rows) + "</table>" + "".join(f"<p class=note>{e}</p>" for e in extra))
+            "<th>u<sub>a</sub> (″)</th><th>u<sub>b</sub> (″)</th><th>u<sub>c</sub> (″)</th></tr></thead><tbody>"
+            + "".join(rows) + "</tbody></table>" + "".join(f"<p class=note>{e}</p>" for e in extra))
 
 
 def _position_plots(results: Mapping[str, Any], label: str) -> str:

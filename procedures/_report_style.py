@@ -28,7 +28,7 @@ tr.total td{border-top:2px solid #888}
 .plots{display:flex;flex-wrap:wrap;gap:4px;break-inside:avoid}.plots svg{flex:0 0 auto}
 table.signoff{width:100%}table.signoff td{height:3.6em}table.signoff th{white-space:nowrap}
 table.signoff td.sign{width:32%}
-.events td{font-size:.85em}
+.events td{font-size:.85em}table.events td:first-child{white-space:nowrap}
 """
 
 PRINT = """
@@ -42,7 +42,7 @@ PRINT = """
  table{width:100%}table.kv{width:auto;max-width:100%}
  th,td{padding:1px 4px}
  pre{font-size:6.5pt;padding:3px}
- .plots{display:block}.plots svg{width:58mm;height:auto;display:inline-block;margin:0 1mm 1mm 0}
+ .plots{display:block}.plots svg{width:57mm;height:auto;display:inline-block;margin:0 1mm 1mm 0}
  .plots.series svg{width:88mm}
  a{color:inherit;text-decoration:none}
 }

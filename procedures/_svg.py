@@ -137,7 +137,7 @@ def _legend_rows(names: Sequence[str], width: int) -> int:
 
 
 def scatter(series: Sequence[tuple[str, ArrayLike, ArrayLike]], *, title: str, xlabel: str, ylabel: str,
-            width: int = 300, height: int = 260, equal_aspect: bool = False, zero_line: bool = False,
+            width: int = 300, height: int = 240, equal_aspect: bool = False, zero_line: bool = False,
             circles: Sequence[Circle] = ()) -> str:
     """An SVG scatter plot.
 

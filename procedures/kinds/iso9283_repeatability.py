@@ -17,7 +17,7 @@ from pydantic import Field
 from instrument.iso9283 import iso_cube_points
 from procedures._geometry import euler_to_matrix, matrix_to_euler, tcp_in_m, translated_in_frame, ur_to_matrix
 from procedures._models import StationFile, Vec3
-from procedures._report_sections import iso_results_html, iso_summary_lines
+from procedures._report_sections import iso_results_html
 from procedures._science import COMPONENTS
 from procedures._store import Sample
 from procedures.kinds._parameters import MotionParameters, ProcedureBase
@@ -86,6 +86,8 @@ class Iso9283RepeatabilityKind:
         return iso_results_html(results)
 
     def summary_lines(self, results: Mapping[str, Any]) -> list[str]:
+        from procedures._report_sections import iso_summary_lines  # here, not above: the import block is shared
+
         return iso_summary_lines(results)
 
 
