@@ -122,6 +122,9 @@ def _summarised(value: Any) -> Any:
     return value
 
 
+SHOWN_ABOVE = ("figures", "uncertainty", "test_conditions", "deviations")  # results keys the sections render in full
+
+
 def _appendix_html(run: dict[str, Any], events: Sequence[dict[str, Any]]) -> str:
     event_rows = "".join(f"<tr><td class=l>{_time(e['time'])}</td><td class=l>{escape(e['kind'])}</td>"
                          f"<td class=l><pre class=inline>{escape(e['message'] or '')}</pre></td></tr>"
@@ -129,10 +132,13 @@ def _appendix_html(run: dict[str, Any], events: Sequence[dict[str, Any]]) -> str
     reason = (f"<h3 id=appendix-reason>Reason (full text)</h3><pre>{escape(str(run['reason']))}</pre>"
               if run.get("reason") and first_line(str(run["reason"]))[1] else "")
     results = run.get("results")
+    if isinstance(results, Mapping):
+        results = {k: v for k, v in results.items() if k not in SHOWN_ABOVE}
     return (
         "<section class=part id=appendix><h2>Appendix: provenance and raw data</h2>"
         "<p class=note>Values below are as stored, in SI units (m, rad, s), rounded to 9 significant digits for "
-        "display; the full data: <code>instrument export RUN --json</code>.</p>"
+        "display; the results without the figures, uncertainty, test conditions and deviations shown above, and "
+        "without the arrays of poses. All of it: <code>instrument export RUN --json</code>.</p>"
         f"{reason}"
         f"<h3>Parameters</h3><pre>{escape(display_json(run.get('parameters')))}</pre>"
         f"<h3>Procedure file</h3><pre>{escape(run.get('procedure_text') or '')}</pre>"

@@ -146,7 +146,9 @@ def quantity(key: str, value: Any, *, difference: bool = False) -> str:
         unit = shown[0].split(" ", 1)[1] if shown and " " in shown[0] and is_number(value[0]) else ""
         numbers = [s.split(" ", 1)[0] if unit and s.endswith(unit) else s for s in shown]
         return "(" + ", ".join(numbers) + ")" + (f" {unit}" if unit else "")
-    if isinstance(value, (Mapping, list, tuple)):
+    if isinstance(value, Mapping):
+        return mapping_table(value, difference=difference, css="kv nested")
+    if isinstance(value, (list, tuple)):
         return f"<pre class=inline>{escape(display_json(value))}</pre>"
     if not is_number(value):
         return escape(str(value))
@@ -156,6 +158,8 @@ def quantity(key: str, value: Any, *, difference: bool = False) -> str:
         return f"{value * 100:.1f} %"
     if k.endswith("_pa"):
         return f"{value / 100:.2f} hPa"
+    if k.endswith("_m") and 0 < abs(value) < 1e-3:  # noise, residuals: µm, where mm would read 0.000
+        return f"{value * 1e6:.3f} µm"
     table = (("_m_s2", "mm/s²", 1e3, 1), ("_mm_s2", "mm/s²", 1, 1), ("_m_s", "mm/s", 1e3, 1),
              ("_mm_s", "mm/s", 1, 1), ("_m", "mm", 1e3, 3), ("_rad", "°", 57.29577951308232, 4),
              ("_kg", "kg", 1, 3), ("_s", "s", 1, 1), ("percent", "%", 1, 1), ("_ppm", "ppm", 1, 3))
@@ -164,7 +168,7 @@ def quantity(key: str, value: Any, *, difference: bool = False) -> str:
             return f"{value * scale:.{digits}f} {unit}"
     if k in ("time", "started", "finished", "start", "end") and value > 1e8:
         return local_time(value)
-    return f"{value:.6g}" if isinstance(value, float) else str(value)
+    return f"{value:.10g}" if isinstance(value, float) else str(value)
 
 
 def label_of(key: str) -> str:
@@ -174,11 +178,12 @@ def label_of(key: str) -> str:
     return text.replace("_", " ")
 
 
-def mapping_table(values: Mapping[str, Any], *, difference: bool = False, skip: tuple[str, ...] = ()) -> str:
-    """A key–value table of a mapping of SI values (nested mappings as JSON in their cell)."""
-    rows = [(label_of(str(k)), quantity(str(k), v, difference=difference)) for k, v in values.items()
-            if k not in skip]
-    return key_value_table(rows)
+def mapping_table(values: Mapping[str, Any], *, difference: bool = False, skip: tuple[str, ...] = (),
+                  css: str = "kv") -> str:
+    """A key–value table of a mapping of SI values (a nested mapping as a table in its cell)."""
+    rows = [(label_of(str(k)), quantity(str(k), v, difference=difference or k == "drift"))
+            for k, v in values.items() if k not in skip]
+    return key_value_table(rows, css=css)
 
 
 # --------------------------------------------------------------------------- the sections of the conditions
@@ -287,16 +292,17 @@ def _records(records: Any) -> str:
     rows = []
     for record in (r for r in records if isinstance(r, Mapping)):
         validity = as_mapping(record.get("validity"))
-        spans = "; ".join(
-            f"{c}: {fmt(v[0], 1e3 if c in 'xyz' else 57.29577951308232, 2)} … "
-            f"{fmt(v[1], 1e3 if c in 'xyz' else 57.29577951308232, 2)} {'mm' if c in 'xyz' else '°'}"
+        spans = "<br>".join(
+            escape(f"{c}: {fmt(v[0], 1e3 if c in 'xyz' else 57.29577951308232, 2)} … "
+                   f"{fmt(v[1], 1e3 if c in 'xyz' else 57.29577951308232, 2)} {'mm' if c in 'xyz' else '°'}")
             for c, v in validity.items() if isinstance(v, (list, tuple)) and len(v) == 2)
         methods = as_mapping(record.get("methods"))
         rows.append(f"<tr><td class=l><code class=hash>{escape(str(record.get('id')))}</code><br><small>"
                     f"{escape(str(record.get('path') or ''))}</small></td>"
-                    f"<td class=l>{escape(', '.join(f'{c}: {m}' for c, m in methods.items()) or '—')}</td>"
-                    f"<td class=l>{escape(str(record.get('date') or '—'))}<br><small>run "
-                    f"{escape(str(record.get('run_id') or '—'))}</small></td><td class=l>{escape(spans) or '—'}</td>"
+                    f"<td class=l>{'<br>'.join(escape(f'{c}: {m}') for c, m in methods.items()) or '—'}</td>"
+                    f"<td class=l>{escape(str(record.get('date') or '—'))}<br><small>run <code class=hash>"
+                    f"{escape(str(record.get('run_id') or '—'))}</code></small></td>"
+                    f"<td class=l nowrap>{spans or '—'}</td>"
                     f"<td class=l>{quantity('', record.get('bidirectional'))}</td>"
                     f"<td class=l>{quantity('', record.get('applied'))}</td></tr>")
     return ("<table><caption>Calibration records</caption><tr><th class=l>record</th><th class=l>method per "

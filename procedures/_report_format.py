@@ -104,9 +104,14 @@ def figure_cell(fig: Figure, unit: Unit, *, css: str = "", show_true: bool = Fal
     if fig.value is None:
         return f"<td class='{css}'>—</td>" if css else "<td>—</td>"
     classes = [css] if css else []
-    text = f"<span class=v>{fmt(fig.value, unit.scale, unit.digits)}</span>"
+    digits = unit.digits
+    if fig.expanded_uncertainty is not None and fig.expanded_uncertainty > 0:
+        # U with two significant digits (GUM 7.2.6), the value to the same decimal place
+        shown = fig.expanded_uncertainty * unit.scale
+        digits = min(max(unit.digits, 1 - math.floor(math.log10(shown))), unit.digits + 3)
+    text = f"<span class=v>{fmt(fig.value, unit.scale, digits)}</span>"
     if fig.expanded_uncertainty is not None:
-        text += f" <span class=u>± {fmt(fig.expanded_uncertainty, unit.scale, unit.digits)}</span>"
+        text += f" <span class=u>± {fmt(fig.expanded_uncertainty, unit.scale, digits)}</span>"
     if fig.meets_rule is False:
         classes.append("flag")
         text += "<sup title='U above 25 % of the figure'>†</sup>"
@@ -114,9 +119,9 @@ def figure_cell(fig: Figure, unit: Unit, *, css: str = "", show_true: bool = Fal
         text += f"<br><small class=deg>{degrees(fig.value)}</small>"
     if fig.interval is not None:
         lo, hi = fig.interval
-        text += f"<br><small class=ci>[{fmt(lo, unit.scale, unit.digits)}, {fmt(hi, unit.scale, unit.digits)}]</small>"
+        text += f"<br><small class=ci>[{fmt(lo, unit.scale, digits)}, {fmt(hi, unit.scale, digits)}]</small>"
     if show_true and fig.true is not None:
-        text += f"<br><small class=true>true {fmt(fig.true, unit.scale, unit.digits)}</small>"
+        text += f"<br><small class=true>true {fmt(fig.true, unit.scale, digits)}</small>"
     cls = f" class='{' '.join(classes)}'" if classes else ""
     return f"<td{cls}>{text}</td>"
 
@@ -124,7 +129,7 @@ def figure_cell(fig: Figure, unit: Unit, *, css: str = "", show_true: bool = Fal
 def key_value_table(rows: Sequence[tuple[str, str]], *, css: str = "kv") -> str:
     """A two-column table; keys are escaped here, values are HTML already."""
     body = "".join(f"<tr><th class=l>{escape(k)}</th><td class=l>{v}</td></tr>" for k, v in rows)
-    return f"<table class={css}>{body}</table>" if rows else ""
+    return f"<table class='{css}'>{body}</table>" if rows else ""
 
 
 def first_line(text: str, limit: int = 160) -> tuple[str, bool]:

@@ -15,7 +15,8 @@ th{background:#eee;font-weight:600}td.l,th.l{text-align:left}caption{text-align:
 table.kv th{width:13em}
 .true,tr.true td{color:#2a7a2a}.bad{color:#b00}.muted{color:#777}.flag{background:#fdecea}
 tr.worst td{border-top:2px solid #666;font-weight:600}
-td small{color:#555;font-weight:normal}
+td small{color:#555;font-weight:normal}.u,.v{white-space:nowrap}td[nowrap]{white-space:nowrap}
+table.nested{margin:0}table.nested th{width:auto;background:#f6f6f6}
 code,.hash{font-family:"DejaVu Sans Mono",monospace;font-size:.92em;overflow-wrap:anywhere;word-break:break-all}
 pre{background:#f6f6f6;padding:6px;font-size:11px;white-space:pre-wrap;overflow-wrap:anywhere;word-break:break-all}
 pre.inline{margin:0;padding:0;background:none}
