@@ -122,7 +122,9 @@ def _summarised(value: Any) -> Any:
     return value
 
 
-SHOWN_ABOVE = ("figures", "uncertainty", "test_conditions", "deviations")  # results keys the sections render in full
+# Results keys the sections render in full (docs/results.md); the appendix leaves them out.
+SHOWN_ABOVE = ("figures", "uncertainty", "test_conditions", "deviations", "evaluation", "before_after",
+               "residual_uncertainty", "reference_vs_truth")
 
 
 def _appendix_html(run: dict[str, Any], events: Sequence[dict[str, Any]]) -> str:
@@ -134,11 +136,14 @@ def _appendix_html(run: dict[str, Any], events: Sequence[dict[str, Any]]) -> str
     results = run.get("results")
     if isinstance(results, Mapping):
         results = {k: v for k, v in results.items() if k not in SHOWN_ABOVE}
+        if isinstance(results.get("summary"), Mapping):  # its evaluation is the held-out table above
+            results["summary"] = {k: v for k, v in results["summary"].items() if k != "evaluation"}
     return (
         "<section class=part id=appendix><h2>Appendix: provenance and raw data</h2>"
         "<p class=note>Values below are as stored, in SI units (m, rad, s), rounded to 9 significant digits for "
-        "display; the results without the figures, uncertainty, test conditions and deviations shown above, and "
-        "without the arrays of poses. All of it: <code>instrument export RUN --json</code>.</p>"
+        "display; the results without what the sections above show in full (figures, uncertainty, test conditions, "
+        "deviations, evaluations) and without the arrays of poses; all of it: <code>instrument export RUN --json"
+        "</code>.</p>"
         f"{reason}"
         f"<h3>Parameters</h3><pre>{escape(display_json(run.get('parameters')))}</pre>"
         f"<h3>Procedure file</h3><pre>{escape(run.get('procedure_text') or '')}</pre>"

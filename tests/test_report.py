@@ -376,3 +376,13 @@ def test_exports(tmp_path):
     data = json.loads(export_json(run, samples, events))
     assert data["run"]["id"] == run["id"] and len(data["samples"]) == 15
     assert data["samples"][0]["commanded"]["tcp_pose"] == samples[0].commanded["tcp_pose"]
+
+
+def test_u_has_two_significant_digits_and_the_value_the_same_decimal_place():
+    from procedures._report_format import MICROMETRES, Figure, figure_cell
+
+    assert figure_cell(Figure(1.36123e-6, 0.0043e-6), MICROMETRES) == (
+        "<td><span class=v>1.3612</span> <span class=u>± 0.0043</span></td>")
+    assert figure_cell(Figure(38.274e-6, 1.43e-6), MICROMETRES).startswith(
+        "<td><span class=v>38.27</span> <span class=u>± 1.43</span>")  # never fewer decimals than the unit's
+    assert figure_cell(Figure(None), MICROMETRES) == "<td>—</td>"
