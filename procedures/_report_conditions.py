@@ -346,9 +346,8 @@ KNOWN = ("standard", "date", "operator", "robot", "payload", "motion", "cube", "
 
 def stored_conditions_html(conditions: Mapping[str, Any]) -> str:
     """The recorded test conditions (docs/results.md), in display units; keys not known here as a table."""
-    head = [("standard", escape(str(conditions.get("standard") or "—"))),
-            ("date", escape(str(conditions.get("date") or "—"))),
-            ("operator", _operator(conditions.get("operator")))]
+    head = [(key, escape(str(conditions[key]))) for key in ("standard", "date") if conditions.get(key)]
+    head.append(("operator", _operator(conditions.get("operator"))))
     rest = {k: v for k, v in conditions.items() if k not in KNOWN}
     return (key_value_table(head) + _robot(conditions.get("robot")) + _payload(conditions.get("payload"))
             + _motion(conditions.get("motion")) + _cube(conditions.get("cube"), conditions.get("cycles"))
