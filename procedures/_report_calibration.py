@@ -5,10 +5,9 @@ truth like with like, and the fit summary as a table.
 
 **The datum.** A group's reference is read from its own zero (the interferometer is zeroed at the
 group's first point; each group starts from its own offset), so a group's errors carry a constant
-that is not the instrument's error. The results (docs/results.md) store each group's statistics
-with its own mean error removed; for runs stored before that, the same is computed here from the
-stored curves: the group's mean of (corrected − reference) is removed from its errors before and
-after, so "after" shows what the correction leaves and the groups can be compared.
+that is not the instrument's error. The results (docs/results.md) store each group's errors and
+statistics with the group's own mean error removed; for runs stored before that, the same is
+computed here from the stored curves, so old and new runs read alike.
 """
 
 from __future__ import annotations
@@ -41,6 +40,31 @@ def _stat(errors: np.ndarray) -> dict[str, Any]:
     return {"rms": float(np.sqrt(np.mean(finite**2))), "max_abs": float(np.max(np.abs(finite))), "n": int(finite.size)}
 
 
+def group_centred(values: np.ndarray, groups: np.ndarray) -> np.ndarray:
+    """``values`` less their group's mean: the group's datum removed."""
+    out = values.astype(float).copy()
+    for g in np.unique(groups):
+        out[groups == g] -= np.mean(values[groups == g])
+    return out
+
+
+def _datum_removed(curve: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """(groups, before, after in-sample) with each group's datum removed: as stored, else computed from the
+    stored errors the way the analysis does (docs/results.md); None if the curve has no errors."""
+    groups = _array(curve.get("group"))
+    before, after = _array(curve.get("error_before_datum_removed")), _array(curve.get("error_after_datum_removed"))
+    if not before.size or after.size != before.size:
+        raw_before, raw_after = _array(curve.get("error_before")), _array(curve.get("error_after"))
+        if not raw_before.size or raw_after.size != raw_before.size:
+            return None
+        if groups.size != raw_before.size:
+            groups = np.zeros(raw_before.size)
+        before, after = group_centred(raw_before, groups), group_centred(raw_after, groups)
+    if groups.size != before.size:
+        groups = np.zeros(before.size)
+    return groups, before, after
+
+
 def before_after(results: Mapping[str, Any]) -> dict[str, Any]:
     """Per component, per group and over all groups, the error statistics with each group's datum
     removed: the results' own ``before_after``, else computed from the stored curves (no held-out)."""
@@ -49,22 +73,15 @@ def before_after(results: Mapping[str, Any]) -> dict[str, Any]:
         return dict(stored)
     out: dict[str, Any] = {}
     for name, curve in (results.get("curves") or {}).items():
-        before, after = _array(curve.get("error_before")), _array(curve.get("error_after"))
-        groups = _array(curve.get("group"))
-        if not before.size or after.size != before.size:
+        centred = _datum_removed(curve)
+        if centred is None:
             continue
-        if groups.size != before.size:
-            groups = np.zeros(before.size)
-        datum = np.zeros(before.size)
-        for g in np.unique(groups):
-            datum[groups == g] = np.mean(after[groups == g])
+        groups, before, after = centred
         out[name] = {"datum_removed": True, "held_out_scheme": None,
-                     "groups": {str(int(g)): {"n": int(np.sum(groups == g)),
-                                              "before": _stat((before - datum)[groups == g]),
-                                              "after_in_sample": _stat((after - datum)[groups == g]),
-                                              "after_held_out": None} for g in np.unique(groups)},
-                     "all": {"before": _stat(before - datum), "after_in_sample": _stat(after - datum),
-                             "after_held_out": None}}
+                     "groups": {str(int(g)): {"n": int(np.sum(groups == g)), "before": _stat(before[groups == g]),
+                                              "after_in_sample": _stat(after[groups == g]), "after_held_out": None}
+                                for g in np.unique(groups)},
+                     "all": {"before": _stat(before), "after_in_sample": _stat(after), "after_held_out": None}}
     return out
 
 
@@ -262,29 +279,15 @@ def _plots(results: Mapping[str, Any]) -> str:
     for name, curve in (results.get("curves") or {}).items():
         unit = component_unit(name)
         value_unit, value_scale = ("°", DEGREE) if unit.angular else ("mm", 1e3)
-        measured, groups = _array(curve.get("measured")), _array(curve.get("group"))
-        if groups.size != measured.size:
-            groups = np.zeros(measured.size)
-        ba = before_after(results).get(name) or {}
-        computed = ba.get("held_out_scheme") is None and "error_before_datum_removed" not in curve
-        before = _array(curve.get("error_before_datum_removed"))
-        in_sample = _array(curve.get("error_after_datum_removed"))
-        if computed or before.size != measured.size:
-            raw_before, raw_after = _array(curve.get("error_before")), _array(curve.get("error_after"))
-            if raw_before.size != measured.size or raw_after.size != measured.size:
-                continue
-            datum = np.zeros(measured.size)
-            for g in np.unique(groups):
-                datum[groups == g] = np.mean(raw_after[groups == g])
-            before, in_sample = raw_before - datum, raw_after - datum
+        measured, centred = _array(curve.get("measured")), _datum_removed(curve)
+        if centred is None or centred[1].size != measured.size:
+            continue
+        groups, before, in_sample = centred
         held_out = _array([np.nan if v is None else v for v in curve.get("error_after_held_out") or []])
-        panels = [("before", before)]
-        panels.append(("after, held-out", held_out) if held_out.size == measured.size
-                      else ("after, in-sample", in_sample))
+        panels = [("before", before), ("after, held-out", held_out) if held_out.size == measured.size
+                  else ("after, in-sample", in_sample)]
         pair = []
         for title, errors in panels:
-            if errors.size != measured.size:
-                continue
             series = [(f"group {int(g)}", measured[groups == g] * value_scale, errors[groups == g] * unit.scale)
                       for g in np.unique(groups)]
             pair.append(scatter(series, title=f"{name}: error {title}", xlabel=f"measured {name} ({value_unit})",

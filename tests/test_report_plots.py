@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from procedures._report import render_report
+from procedures._report_iso import figure
 from procedures._svg import Circle, lines, scatter
 from tests.test_report import fake_run
 
@@ -90,7 +91,7 @@ def test_report_position_plots_are_equal_aspect_with_the_rp_circle(iso_report):
         per_x, x0 = scale(svg, "x")
         per_y, y0 = scale(svg, "y")
         assert per_x == pytest.approx(per_y, rel=2e-3)
-        rp_l_um = run["results"]["points"][label]["stats"]["rp_l"] * 1e6
+        rp_l_um = figure(run["results"], label, "rp_l").value * 1e6  # the RP_l the table reports
         circle = next(c for c in svg.iter(f"{SVG}circle") if c.get("class") == "circle")
         assert float(circle.get("r")) / per_x == pytest.approx(rp_l_um, rel=2e-3)
         assert (float(circle.get("cx")), float(circle.get("cy"))) == pytest.approx((x0, y0), abs=0.05)  # barycentre
