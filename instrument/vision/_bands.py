@@ -1,66 +1,68 @@
 """From two coarse stripe lines to the sub-pixel cross (method.md §2.2–§2.4), shared by the full
 search and the tracking path.
 
-For each stripe a narrow band of full-resolution pixels following its coarse line (one gather,
-integers only) → IGCF on every cross-section of both bands at once (``_igcf``), the crossing zone
-left out → bisquare line fit (``_linefit``) → intersection and angles.
+All the stripes of a call (two per frame, six for a trigger of three cameras) go through each
+step together, so every numpy operation is paid once per call, not once per stripe:
+
+1. **bands**: for each stripe, the ``2·BAND_HALF_WIDTH + 1`` full-resolution pixels across its
+   coarse line in every cross-section (a column of a horizontal stripe, a row of a vertical one),
+   the crossing zone left out — one fancy-index read per stripe through a strided view of the
+   frame, into one (sections, across) array, turned once into (across, sections);
+2. **local background** per section (running mean of the outer rows within each stripe), the
+   noise and the stripe width per stripe;
+3. **IGCF** of every section of every stripe in one call (``_igcf``);
+4. **bisquare lines** through each stripe's centres, all stripes in one batched IRLS (``_linefit``);
+   intersection and angles per frame.
+
+The large arrays live in a :class:`VisionWorkspace` (see there for why).
 """
 
 from __future__ import annotations
 
-import math
 from typing import NamedTuple
 
 import cv2
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 
 from instrument.vision._detect import CoarseLine
-from instrument.vision._igcf import SectionCentres, half_window_for_width, igcf_band, stripe_fwhm
-from instrument.vision._linefit import LineFit, bisquare_line
+from instrument.vision._igcf import FWHM_PER_SIGMA, MAX_HALF_WINDOW, MIN_HALF_WINDOW, SectionCentres, igcf_band
+from instrument.vision._linefit import LineFit, bisquare_lines
 from instrument.vision._types import CrossMeasurement, CrossNotFound, StripeLine
+from instrument.vision._workspace import VisionWorkspace
 
 BAND_HALF_WIDTH = 12  # px each side of the coarse line: holds the stripe, its window and plateau
+BAND_WIDTH = 2 * BAND_HALF_WIDTH + 1
 MIN_AMPLITUDE_SIGMAS = 6.0  # sections whose peak is weaker than this many noise σ are left out
-EDGE_ROWS = np.r_[0:2, -2:0]  # band rows that sample the background (≥ 11 px from the line)
+EDGE_ROWS = np.r_[0:2, BAND_WIDTH - 2 : BAND_WIDTH]  # band rows that sample the background (≥ 11 px from the line)
 BACKGROUND_SPAN = 31  # sections averaged for the local background
-NOISE_STRIDE = 8  # every 8th section's edge pixels give the noise σ (plenty of samples)
-
-
-class Band(NamedTuple):
-    """Full-resolution pixels following one stripe: ``values[k, i]`` is pixel ``base[i] + k``
-    across the stripe in section ``along[i]`` (a column of a horizontal stripe, a row of a
-    vertical one)."""
-
-    values: np.ndarray  # (2·BAND_HALF_WIDTH+1, N) image dtype
-    valid: np.ndarray | None  # same shape, or None when every pixel lies in the frame
-    along: np.ndarray  # (N,) section index
-    base: np.ndarray  # (N,) first pixel of the band across the stripe
-    background: np.ndarray  # (N,) local background per section
-    noise: float
-    vertical: bool
-
-
-class StripeFit(NamedTuple):
-    line: LineFit  # centre = intercept + slope·along
-    along: np.ndarray  # (N,) section coordinate of the centres used
-    saturated: int
-    peak: float
+SAMPLE_STRIDE = 8  # every 8th section's pixels give the noise σ and the stripe width (plenty of samples)
+MIN_EDGE_PIXELS = 16  # a band with fewer background pixels in the frame uses the frame's figures
 
 
 def kind(vertical: bool) -> str:
     return "near-vertical" if vertical else "near-horizontal"
 
 
-def extract_band(flat, shape, line: CoarseLine, other: CoarseLine, fallback_bg, min_sections) -> Band:
-    """One gather of the band around ``line``, the crossing zone left out."""
+class BandPlan(NamedTuple):
+    """Where one stripe's band lies: ``base[i] + k`` (k = 0 … BAND_WIDTH−1) across the stripe in
+    section ``along[i]``."""
+
+    along: np.ndarray  # (N,) section index (column of a horizontal stripe, row of a vertical one)
+    base: np.ndarray  # (N,) first pixel of the band across the stripe
+    inside: bool  # every pixel of the band lies in the frame (the usual case)
+    vertical: bool
+
+
+def plan_band(shape, line: CoarseLine, other: CoarseLine, min_sections) -> BandPlan:
+    """The sections of the band around ``line``, the crossing zone left out."""
     rows, cols = shape
     n_sections, across_len = (rows, cols) if line.vertical else (cols, rows)
     s = np.arange(n_sections)
     position = line.at(s)
     # leave out the crossing: sections where the other stripe passes within the band
-    other_at = other.at(position)
     reach = BAND_HALF_WIDTH * (1.0 + abs(other.slope)) + BAND_HALF_WIDTH
-    keep = np.abs(s - other_at) > reach
+    keep = np.abs(s - other.at(position)) > reach
     keep &= (position > -BAND_HALF_WIDTH) & (position < across_len - 1 + BAND_HALF_WIDTH)
     s, position = s[keep], position[keep]
     if len(s) < min_sections:
@@ -69,116 +71,143 @@ def extract_band(flat, shape, line: CoarseLine, other: CoarseLine, fallback_bg, 
             f"crossing zone (need ≥ {min_sections})"
         )
     base = np.rint(position).astype(np.intp) - BAND_HALF_WIDTH
-    k = np.arange(2 * BAND_HALF_WIDTH + 1)
-    step, stride = (1, cols) if line.vertical else (cols, 1)  # flat-index steps across / along
-    if base[0] >= 0 and base[-1] >= 0 and max(base[0], base[-1]) + 2 * BAND_HALF_WIDTH < across_len:
-        valid = None  # the whole band lies in the frame (the usual case): no masks needed
-        index = np.add.outer(k * step, base * step + s * stride)
-    else:
-        across = base[None, :] + k[:, None]
-        valid = (across >= 0) & (across < across_len)
-        index = np.clip(across, 0, across_len - 1) * step + (s * stride)[None, :]
-    values = flat.take(index)
-    background, noise = _local_background(values, valid, fallback_bg)
-    return Band(values, valid, s, base, background, noise, line.vertical)
+    low, high = min(base[0], base[-1]), max(base[0], base[-1])  # base is monotonic along the stripe
+    return BandPlan(s, base, bool(low >= 0 and high + BAND_WIDTH <= across_len), line.vertical)
 
 
-_EDGE_COUNTS: dict[int, np.ndarray] = {}
+def _gather(flat, shape, plan: BandPlan, out, valid_out) -> None:
+    """Write the band's pixels into ``out`` (sections, BAND_WIDTH); ``valid_out`` marks pixels in
+    the frame (only for a band that leaves it; off-frame pixels read the nearest edge pixel)."""
+    rows, cols = shape
+    across_len = cols if plan.vertical else rows
+    step, stride = (1, cols) if plan.vertical else (cols, 1)  # flat-index steps across / along
+    first = plan.along * stride
+    if plan.inside:
+        # row i of this view is the BAND_WIDTH pixels across the stripe from flat index i
+        across = sliding_window_view(flat, (BAND_WIDTH - 1) * step + 1)[:, ::step]
+        out[...] = across[first + plan.base * step]
+        return
+    across = plan.base[:, None] + np.arange(BAND_WIDTH)[None, :]
+    valid_out[...] = (across >= 0) & (across < across_len)
+    out[...] = flat.take(np.clip(across, 0, across_len - 1) * step + first[:, None])
 
 
-def _edge_counts(n: int) -> np.ndarray:
-    """Edge pixels inside the running window of each of n sections (cached: the same n recur)."""
-    counts = _EDGE_COUNTS.get(n)
-    if counts is None:
+class Bands(NamedTuple):
+    """All stripes' bands side by side: section ``i`` of stripe ``j`` is column ``starts[j] + i``."""
+
+    values: np.ndarray  # (BAND_WIDTH, N) workspace array, image dtype
+    valid: np.ndarray | None  # same shape (False: off the frame), or None when all pixels exist
+    starts: np.ndarray  # (stripes + 1,) column bounds
+    background: np.ndarray  # (N,) local background per section
+    noise: np.ndarray  # (stripes,) noise σ per stripe
+
+
+def _segments(ws: VisionWorkspace, sizes: tuple[int, ...]):
+    """Per section: the first and last section of its running-mean window within its own stripe;
+    and the columns sampled for noise and width (every SAMPLE_STRIDE-th of each stripe)."""
+
+    def make():
+        starts = np.concatenate([[0], np.cumsum(sizes)])
+        stripe_start = np.repeat(starts[:-1], sizes)
+        stripe_last = np.repeat(starts[1:] - 1, sizes)
+        i = np.arange(starts[-1])
         half = BACKGROUND_SPAN // 2
-        i = np.arange(n)
-        counts = (np.minimum(i + half, n - 1) - np.maximum(i - half, 0) + 1) * float(len(EDGE_ROWS))
-        if len(_EDGE_COUNTS) > 64:  # a stream sees a handful of lengths; never grow without bound
-            _EDGE_COUNTS.clear()
-        _EDGE_COUNTS[n] = counts
-    return counts
+        low, high = np.maximum(i - half, stripe_start), np.minimum(i + half, stripe_last)
+        sampled = np.concatenate([np.arange(lo, hi, SAMPLE_STRIDE) for lo, hi in zip(starts[:-1], starts[1:])])
+        sample_starts = np.concatenate([[0], np.cumsum([-(-n // SAMPLE_STRIDE) for n in sizes])])
+        return starts, low, high + 1, sampled, sample_starts
+
+    return ws.cached(("segments", sizes), make)
 
 
-def _local_background(values, valid, fallback_bg):
-    """Background per section and noise σ, from the band's two outer rows on each side.
+def extract_bands(jobs_plans, ws: VisionWorkspace, fallback_bgs) -> Bands:
+    """Gather every planned band into one array and measure each stripe's background and noise.
 
-    The edge pixels are averaged over ``BACKGROUND_SPAN`` neighbouring sections (a running mean),
-    so a smooth gradient of ambient light is followed while the estimate stays quiet.
+    ``jobs_plans`` is a list of (flat frame, shape, BandPlan); ``fallback_bgs`` one frame
+    background per band (used where a band has too few background pixels in the frame).
     """
-    edges = values[EDGE_ROWS].astype(np.float32)
-    n = values.shape[1]
-    if valid is None:  # every edge pixel exists: the counts of the running sum are known
-        total = cv2.boxFilter(
-            edges.sum(axis=0)[None, :], -1, (BACKGROUND_SPAN, 1), normalize=False, borderType=cv2.BORDER_CONSTANT
-        )[0]
-        background = total / _edge_counts(n)
-        sample = edges[:, ::NOISE_STRIDE] - background[::NOISE_STRIDE].astype(np.float32)
-        noise = math.sqrt(float(np.einsum("ij,ij->", sample, sample)) / sample.size)
-        return background, max(noise, 0.5)
-    weight = valid[EDGE_ROWS].astype(np.float32)
-    if weight.sum() < 16:  # band cut off by the frame on both sides: use the frame's figures
-        return np.full(n, fallback_bg), 0.5
-    # running sums of edge levels and of edge-pixel counts over BACKGROUND_SPAN sections at once
-    sums = cv2.boxFilter(
-        np.stack([(edges * weight).sum(axis=0), weight.sum(axis=0)]),
-        -1,
-        (BACKGROUND_SPAN, 1),
-        normalize=False,
-        borderType=cv2.BORDER_CONSTANT,
-    )
-    total, count = sums[0], sums[1]
-    background = np.where(count > 0.5, total / np.maximum(count, 1.0), fallback_bg)
-    residual = (edges - background[None, :].astype(np.float32)) * weight
-    noise = float(np.sqrt((residual * residual).sum() / weight.sum()))
-    return background, max(noise, 0.5)
+    sizes = tuple(len(plan.along) for _, _, plan in jobs_plans)
+    starts, window_low, window_end, sampled, sample_starts = _segments(ws, sizes)
+    n = int(starts[-1])
+    dtype = np.result_type(*(flat.dtype for flat, _, _ in jobs_plans))
+    by_section = ws.array("bands.by_section", (n, BAND_WIDTH), dtype)
+    all_inside = all(plan.inside for _, _, plan in jobs_plans)
+    valid_by_section = np.ones((n if not all_inside else 0, BAND_WIDTH), bool)
+    for (flat, shape, plan), lo, hi in zip(jobs_plans, starts[:-1], starts[1:]):
+        _gather(flat, shape, plan, by_section[lo:hi], None if plan.inside else valid_by_section[lo:hi])
+    values = ws.array("bands.values", (BAND_WIDTH, n), dtype)
+    if cv2.transpose(by_section, values) is not values:  # a dtype OpenCV does not take in place
+        values[...] = by_section.T
+    valid = None if all_inside else np.ascontiguousarray(valid_by_section.T)
+
+    # background: running mean of the edge pixels over BACKGROUND_SPAN sections of the same stripe,
+    # so a smooth gradient of ambient light is followed while the estimate stays quiet
+    edges = values[EDGE_ROWS]
+    edge_weight = None if valid is None else valid[EDGE_ROWS]
+    edge_sum = (edges if edge_weight is None else edges * edge_weight).sum(axis=0, dtype=np.int64)
+    running = np.zeros(n + 1, np.int64)
+    np.cumsum(edge_sum, out=running[1:])
+    total = running[window_end] - running[window_low]
+    if edge_weight is None:
+        count = (window_end - window_low) * float(len(EDGE_ROWS))
+        background = total / count
+    else:
+        running_count = np.zeros(n + 1, np.int64)
+        np.cumsum(edge_weight.sum(axis=0), out=running_count[1:])
+        count = (running_count[window_end] - running_count[window_low]).astype(float)
+        background = np.where(count > 0.5, total / np.maximum(count, 1.0), np.repeat(fallback_bgs, sizes))
+    # noise σ per stripe from the sampled sections' edge pixels
+    residual = edges[:, sampled] - background[sampled].astype(np.float32)
+    squares = residual * residual
+    if edge_weight is None:
+        square_sum = np.add.reduceat(squares.sum(axis=0), sample_starts[:-1])
+        pixels = np.diff(sample_starts) * float(len(EDGE_ROWS))
+    else:
+        weight = edge_weight[:, sampled]
+        square_sum = np.add.reduceat((squares * weight).sum(axis=0), sample_starts[:-1])
+        pixels = np.add.reduceat(weight.sum(axis=0), sample_starts[:-1]).astype(float)
+    noise = np.maximum(np.sqrt(square_sum / np.maximum(pixels, 1.0)), 0.5)
+    if edge_weight is not None:  # bands cut off by the frame on both sides: use the frame's figures
+        in_frame = np.add.reduceat(edge_weight.sum(axis=0), starts[:-1])
+        for j in np.flatnonzero(in_frame < MIN_EDGE_PIXELS):
+            background[starts[j] : starts[j + 1]] = fallback_bgs[j]
+            noise[j] = 0.5
+    return Bands(values, valid, starts, background, noise)
 
 
-def section_centres(bands, saturation, half_window) -> list[SectionCentres]:
-    """IGCF of every section of all ``bands`` in one vectorised call (the per-call overhead is paid
-    once, however many stripes — or frames — there are). ``saturation`` is one level, or one per band.
-    """
-    sizes = [b.values.shape[1] for b in bands]
-    levels = list(saturation) if isinstance(saturation, (list, tuple)) else [saturation] * len(bands)
+def half_windows(bands: Bands, levels, ws: VisionWorkspace) -> np.ndarray:
+    """IGCF half-window per stripe from its width at half maximum (``igcf.half_window_for_width``):
+    the median over every SAMPLE_STRIDE-th section, saturated sections left out."""
+    sizes = tuple(np.diff(bands.starts))
+    _, _, _, sampled, sample_starts = _segments(ws, sizes)
+    sub = bands.values[:, sampled]
+    background = bands.background[sampled]
+    peak = sub.max(axis=0)
+    half = np.ceil(0.5 * (background + peak)).astype(sub.dtype)  # x ≥ h ⟺ x ≥ ⌈h⌉ for integers
+    widths = (sub >= half[None, :]).sum(axis=0)
+    stripe = np.repeat(np.arange(len(sizes)), np.diff(sample_starts))
+    usable = (peak > background) & (peak < np.repeat(levels, np.diff(sample_starts)))
+    # median width per stripe from a histogram of the (small, integer) widths
+    bins = BAND_WIDTH + 1
+    histogram = np.bincount(stripe[usable] * bins + widths[usable], minlength=len(sizes) * bins)
+    cumulative = histogram.reshape(len(sizes), bins).cumsum(axis=1)
+    count = cumulative[:, -1]
 
-    def per_section(values):  # one value per band → one per section
-        return np.repeat(np.asarray(values, dtype=float), sizes)
+    def order_statistic(k):  # the k-th smallest width of each stripe (0-based)
+        return np.argmax(cumulative > k[:, None], axis=1)
 
-    if half_window is None:  # each stripe's window from its own width
-        half_window = per_section(
-            [half_window_for_width(stripe_fwhm(b.values, b.background, level)) for b, level in zip(bands, levels)]
-        ).astype(np.intp)
-    values = np.concatenate([b.values for b in bands], axis=1)
-    valid = None
-    if any(b.valid is not None for b in bands):
-        valid = np.concatenate(
-            [np.ones(b.values.shape, bool) if b.valid is None else b.valid for b in bands], axis=1
-        )
-    result = igcf_band(
-        values,
-        valid,
-        np.concatenate([b.background for b in bands]),
-        levels[0] if len(set(levels)) == 1 else per_section(levels),
-        half_window,
-        per_section([MIN_AMPLITUDE_SIGMAS * b.noise for b in bands]),
-    )
-    bounds = np.cumsum([0, *sizes])
-    return [SectionCentres(*(field[lo:hi] for field in result)) for lo, hi in zip(bounds[:-1], bounds[1:])]
+    middle = count // 2
+    fwhm = np.where(count % 2 == 1, order_statistic(middle), 0.5 * (order_statistic(np.maximum(middle - 1, 0))
+                                                                     + order_statistic(middle)))
+    fwhm = np.where(count > 0, fwhm, FWHM_PER_SIGMA * 2.0)  # nothing to measure: assume σ = 2 px
+    return np.clip(np.rint(0.85 * fwhm), MIN_HALF_WINDOW, MAX_HALF_WINDOW).astype(np.intp)
 
 
-def fit_stripe(band: Band, centres: SectionCentres, min_sections) -> StripeFit:
-    """Bisquare line through the IGCF centres of one stripe: centre = a + b·along."""
-    ok = centres.valid
-    n_ok = int(np.count_nonzero(ok))
-    if n_ok < min_sections:
-        raise CrossNotFound(
-            f"{kind(band.vertical)} stripe too short to fit: {n_ok} usable cross-sections "
-            f"(need ≥ {min_sections})"
-        )
-    centre = band.base[ok] + centres.center[ok]
-    along = band.along[ok].astype(float)
-    fit = bisquare_line(along, centre)
-    peak = float((centres.peak + band.background)[ok].max())
-    return StripeFit(fit, along, int(np.count_nonzero(centres.saturated)), peak)
+class StripeFit(NamedTuple):
+    line: LineFit  # centre = intercept + slope·along
+    along: np.ndarray  # (N,) section coordinate of the centres used
+    saturated: int
+    peak: float
 
 
 def _stripe_line(fit: StripeFit, vertical: bool) -> StripeLine:
@@ -203,36 +232,74 @@ class CrossJob(NamedTuple):
     search: str = "full"
 
 
-def measure_crosses(jobs, half_window, min_sections) -> list[CrossMeasurement | CrossNotFound]:
-    """The sub-pixel crosses of several frames at once (one IGCF call for all their stripes).
+def measure_crosses(jobs, half_window, min_sections, workspace=None) -> list[CrossMeasurement | CrossNotFound]:
+    """The sub-pixel crosses of several frames at once (every step runs once for all their stripes).
 
     Each entry of the result is the frame's ``CrossMeasurement``, or the ``CrossNotFound`` it
     raised (returned, not raised, so that one bad frame does not cost the others their result).
+    ``workspace`` holds the large temporaries (a fresh one if None).
     """
+    ws = VisionWorkspace() if workspace is None else workspace
     results: dict[int, CrossMeasurement | CrossNotFound] = {}
-    prepared = []  # (job number, job, [horizontal band, vertical band])
+    planned = []  # (job number, job, (horizontal plan, vertical plan))
     for number, job in enumerate(jobs):
         try:
-            bands = [
-                extract_band(job.flat, job.shape, line, other, job.fallback_bg, min_sections)
+            plans = tuple(
+                plan_band(job.shape, line, other, min_sections)
                 for line, other in ((job.horizontal, job.vertical), (job.vertical, job.horizontal))
-            ]
+            )
         except CrossNotFound as exc:
             results[number] = exc
             continue
-        prepared.append((number, job, bands))
-    if prepared:
-        bands = [band for _, _, pair in prepared for band in pair]
-        levels = [job.saturation for _, job, _ in prepared for _ in range(2)]
-        centres = section_centres(bands, levels, half_window)
-        for k, (number, job, pair) in enumerate(prepared):
+        planned.append((number, job, plans))
+    if planned:
+        stripes = [(job.flat, job.shape, plan) for _, job, plans in planned for plan in plans]
+        levels = np.array([job.saturation for _, job, _ in planned for _ in range(2)], float)
+        bands = extract_bands(stripes, ws, np.array([job.fallback_bg for _, job, _ in planned for _ in range(2)]))
+        sizes = np.diff(bands.starts)
+        if half_window is None:  # each stripe's window from its own width
+            half_window = np.repeat(half_windows(bands, levels, ws), sizes)
+        centres = igcf_band(
+            bands.values,
+            bands.valid,
+            bands.background,
+            levels[0] if np.all(levels == levels[0]) else np.repeat(levels, sizes),
+            half_window,
+            np.repeat(MIN_AMPLITUDE_SIGMAS * bands.noise, sizes),
+            ws,
+        )
+        fitted = []  # (job number, job, stripe numbers)
+        points: list[tuple[np.ndarray, np.ndarray]] = []  # (along, centre) per stripe to fit
+        for k, (number, job, plans) in enumerate(planned):
             try:
-                h_fit, v_fit = (fit_stripe(pair[i], centres[2 * k + i], min_sections) for i in range(2))
+                usable = [_usable_centres(plan, centres, bands, 2 * k + i, min_sections)
+                          for i, plan in enumerate(plans)]
             except CrossNotFound as exc:
                 results[number] = exc
                 continue
-            results[number] = _cross(h_fit, v_fit, job.search)
+            fitted.append((number, job, usable))
+            points.extend((along, centre) for along, centre, _ in usable)
+        if points:
+            lines = iter(bisquare_lines([p[0] for p in points], [p[1] for p in points]))
+            for number, job, usable in fitted:
+                h_fit, v_fit = (StripeFit(next(lines), along, *extra) for along, _, extra in usable)
+                results[number] = _cross(h_fit, v_fit, job.search)
     return [results[number] for number in range(len(jobs))]
+
+
+def _usable_centres(plan: BandPlan, centres: SectionCentres, bands: Bands, stripe: int, min_sections):
+    """(along, centre, (saturated sections, peak level)) of one stripe's usable IGCF centres."""
+    lo, hi = bands.starts[stripe], bands.starts[stripe + 1]
+    ok = centres.valid[lo:hi]
+    n_ok = int(np.count_nonzero(ok))
+    if n_ok < min_sections:
+        raise CrossNotFound(
+            f"{kind(plan.vertical)} stripe too short to fit: {n_ok} usable cross-sections "
+            f"(need ≥ {min_sections})"
+        )
+    centre = plan.base[ok] + centres.center[lo:hi][ok]
+    peak = float((centres.peak[lo:hi] + bands.background[lo:hi])[ok].max())
+    return plan.along[ok].astype(float), centre, (int(np.count_nonzero(centres.saturated[lo:hi])), peak)
 
 
 def measure_cross(
@@ -245,6 +312,7 @@ def measure_cross(
     half_window,
     min_sections: int,
     search: str = "full",
+    workspace=None,
 ) -> CrossMeasurement:
     """The sub-pixel cross of one frame from two coarse lines good to about a pixel.
 
@@ -252,7 +320,7 @@ def measure_cross(
     usable sections.
     """
     job = CrossJob(flat, shape, horizontal, vertical, fallback_bg, saturation, search)
-    (result,) = measure_crosses([job], half_window, min_sections)
+    (result,) = measure_crosses([job], half_window, min_sections, workspace)
     if isinstance(result, CrossNotFound):
         raise result
     return result

@@ -59,6 +59,7 @@ def locate_cross(
     half_window=None,
     min_sections=MIN_SECTIONS,
     search_px=TRACK_SEARCH_PX,
+    workspace=None,
 ) -> CrossMeasurement:
     """Locate a cross-line laser's cross in one camera image to sub-pixel precision (method.md §2).
 
@@ -86,6 +87,9 @@ def locate_cross(
     search_px : int, optional
         Half-width of the band searched around each prior line, px (default 24): the largest
         stripe motion between two frames that tracking follows.
+    workspace : VisionWorkspace, optional
+        Scratch memory reused from call to call (a stream keeps one; see ``VisionWorkspace``);
+        None = fresh memory for this call. The result never refers to it.
 
     Returns
     -------
@@ -109,7 +113,8 @@ def locate_cross(
     lost_reason = None
     if prior is not None:
         _check_search(search_px, img.shape)
-        tracked = track_cross(flat, img.shape, saturation, prior, half_window, min_sections, int(search_px))
+        tracked = track_cross(flat, img.shape, saturation, prior, half_window, min_sections, int(search_px),
+                              workspace)
         if isinstance(tracked, CrossMeasurement):
             return tracked
         lost_reason = tracked
@@ -124,6 +129,7 @@ def locate_cross(
         half_window,
         min_sections,
         search="full" if prior is None else "fallback",
+        workspace=workspace,
     )
     return measured if lost_reason is None else replace(measured, lost_reason=lost_reason)
 
@@ -137,6 +143,7 @@ def locate_crosses(
     half_window=None,
     min_sections=MIN_SECTIONS,
     search_px=TRACK_SEARCH_PX,
+    workspace=None,
 ) -> dict[str, CrossMeasurement | CrossNotFound]:
     """:func:`locate_cross` on several frames at once — the three cameras of one trigger.
 
@@ -150,7 +157,7 @@ def locate_crosses(
         As for ``locate_cross``; one level for all frames, or one per name.
     priors : mapping name → CrossMeasurement or None, optional
         Each frame's prior (the previous result for that camera); a missing name or None: full search.
-    threshold, half_window, min_sections, search_px
+    threshold, half_window, min_sections, search_px, workspace
         As for ``locate_cross``.
 
     Returns
@@ -187,13 +194,13 @@ def locate_crosses(
             results[name] = job
         else:
             jobs[name] = job
-    measured = dict(zip(jobs, measure_crosses(list(jobs.values()), half_window, min_sections)))
+    measured = dict(zip(jobs, measure_crosses(list(jobs.values()), half_window, min_sections, workspace)))
     for name, result in measured.items():
         if jobs[name].search == "tracked":
             reason = lost_after_fit(result, priors[name])
             if reason is not None:  # rare: the fine fit shows the prior lost; search this frame again
                 lost[name] = reason
-                result = _full_search(images[name], jobs[name], threshold, half_window, min_sections)
+                result = _full_search(images[name], jobs[name], threshold, half_window, min_sections, workspace)
         if isinstance(result, CrossMeasurement) and lost.get(name) is not None:
             result = replace(result, lost_reason=lost[name])
         results[name] = result
@@ -208,9 +215,10 @@ def _full_search_job(img, flat, level, threshold, search) -> CrossJob | CrossNot
     return CrossJob(flat, img.shape, detection.horizontal, detection.vertical, detection.background, level, search)
 
 
-def _full_search(img, tracked: CrossJob, threshold, half_window, min_sections) -> CrossMeasurement | CrossNotFound:
+def _full_search(img, tracked: CrossJob, threshold, half_window, min_sections,
+                 workspace) -> CrossMeasurement | CrossNotFound:
     job = _full_search_job(img, tracked.flat, tracked.saturation, threshold, "fallback")
     if isinstance(job, CrossNotFound):
         return job
-    (result,) = measure_crosses([job], half_window, min_sections)
+    (result,) = measure_crosses([job], half_window, min_sections, workspace)
     return result

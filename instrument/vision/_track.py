@@ -25,6 +25,7 @@ it); it is caught only if it disturbs the fit enough to trip one of the rules ab
 from __future__ import annotations
 
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 
 from instrument.vision._bands import CrossJob, kind, measure_crosses
 from instrument.vision._detect import CoarseLine
@@ -87,7 +88,7 @@ def _reacquire(flat, shape, line: CoarseLine, other: CoarseLine, search: int) ->
     first, last = min(base[0], base[-1]), max(base[0], base[-1]) + width - 1  # base is monotonic in s
     if first >= 0 and last < across_len:  # the usual case: the whole search band lies in the frame
         inside = None
-        values = flat.take(np.add.outer(base * step + s * stride, np.arange(width) * step))
+        values = sliding_window_view(flat, (width - 1) * step + 1)[:, ::step][base * step + s * stride]
         sample = np.concatenate([values[:, :EDGE_SAMPLE_ROWS].ravel(), values[:, -EDGE_SAMPLE_ROWS:].ravel()])
     else:
         across = base[:, None] + np.arange(width)[None, :]
@@ -169,14 +170,15 @@ def lost_after_fit(measured: CrossMeasurement | CrossNotFound, prior) -> str | N
     return None
 
 
-def track_cross(flat, shape, saturation, prior, half_window, min_sections, search) -> CrossMeasurement | str:
+def track_cross(flat, shape, saturation, prior, half_window, min_sections, search,
+                workspace=None) -> CrossMeasurement | str:
     """The cross found near ``prior``'s lines, or the reason the prior is lost (a string)."""
     lines = reacquire(flat, shape, prior, search)
     if isinstance(lines, str):
         return lines
     horizontal, vertical, background = lines
     job = CrossJob(flat, shape, horizontal, vertical, background, saturation, "tracked")
-    (measured,) = measure_crosses([job], half_window, min_sections)
+    (measured,) = measure_crosses([job], half_window, min_sections, workspace)
     reason = lost_after_fit(measured, prior)
     if reason is not None or isinstance(measured, CrossNotFound):
         return reason or str(measured)
