@@ -11,7 +11,7 @@ step together, so every numpy operation is paid once per call, not once per stri
 2. **local background** per section (running mean of the outer rows within each stripe), the
    noise and the stripe width per stripe;
 3. **IGCF** of every section of every stripe in one call (``_igcf``);
-4. **bisquare lines** through each stripe's centres, all stripes in one batched IRLS (``_linefit``);
+4. **bisquare lines** through each stripe's centres (``_linefit``), one IRLS per stripe;
    intersection and angles per frame.
 
 The large arrays live in a :class:`VisionWorkspace` (see there for why).
@@ -23,11 +23,10 @@ from typing import NamedTuple
 
 import cv2
 import numpy as np
-from numpy.lib.stride_tricks import sliding_window_view
 
 from instrument.vision._detect import CoarseLine
 from instrument.vision._igcf import FWHM_PER_SIGMA, MAX_HALF_WINDOW, MIN_HALF_WINDOW, SectionCentres, igcf_band
-from instrument.vision._linefit import LineFit, bisquare_lines
+from instrument.vision._linefit import LineFit, bisquare_line
 from instrument.vision._types import CrossMeasurement, CrossNotFound, StripeLine
 from instrument.vision._workspace import VisionWorkspace
 
@@ -75,6 +74,18 @@ def plan_band(shape, line: CoarseLine, other: CoarseLine, min_sections) -> BandP
     return BandPlan(s, base, bool(low >= 0 and high + BAND_WIDTH <= across_len), line.vertical)
 
 
+def across_view(flat, width: int, step: int) -> np.ndarray:
+    """Read-only view of a raveled frame whose row i is the ``width`` pixels from flat index i in
+    steps of ``step`` (1: along an image row, the row length: down a column), so that one
+    fancy-index read with N start indices gathers N cross-sections — no (N, width) index array.
+    (A direct ndarray over the buffer: ``sliding_window_view`` costs more to set up than the read.)
+    """
+    rows = flat.size - (width - 1) * step
+    view = np.ndarray((rows, width), flat.dtype, flat, 0, (flat.itemsize, step * flat.itemsize))
+    view.flags.writeable = False
+    return view
+
+
 def _gather(flat, shape, plan: BandPlan, out, valid_out) -> None:
     """Write the band's pixels into ``out`` (sections, BAND_WIDTH); ``valid_out`` marks pixels in
     the frame (only for a band that leaves it; off-frame pixels read the nearest edge pixel)."""
@@ -83,9 +94,7 @@ def _gather(flat, shape, plan: BandPlan, out, valid_out) -> None:
     step, stride = (1, cols) if plan.vertical else (cols, 1)  # flat-index steps across / along
     first = plan.along * stride
     if plan.inside:
-        # row i of this view is the BAND_WIDTH pixels across the stripe from flat index i
-        across = sliding_window_view(flat, (BAND_WIDTH - 1) * step + 1)[:, ::step]
-        out[...] = across[first + plan.base * step]
+        out[...] = across_view(flat, BAND_WIDTH, step)[first + plan.base * step]
         return
     across = plan.base[:, None] + np.arange(BAND_WIDTH)[None, :]
     valid_out[...] = (across >= 0) & (across < across_len)
@@ -280,7 +289,9 @@ def measure_crosses(jobs, half_window, min_sections, workspace=None) -> list[Cro
             fitted.append((number, job, usable))
             points.extend((along, centre) for along, centre, _ in usable)
         if points:
-            lines = iter(bisquare_lines([p[0] for p in points], [p[1] for p in points]))
+            # one IRLS per stripe: a stripe's few thousand points stay in the L1 cache, which a
+            # batch of all stripes does not (measured: batching the six fits doubled their cost)
+            lines = iter([bisquare_line(along, centre) for along, centre in points])
             for number, job, usable in fitted:
                 h_fit, v_fit = (StripeFit(next(lines), along, *extra) for along, _, extra in usable)
                 results[number] = _cross(h_fit, v_fit, job.search)

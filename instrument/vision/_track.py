@@ -25,9 +25,8 @@ it); it is caught only if it disturbs the fit enough to trip one of the rules ab
 from __future__ import annotations
 
 import numpy as np
-from numpy.lib.stride_tricks import sliding_window_view
 
-from instrument.vision._bands import CrossJob, kind, measure_crosses
+from instrument.vision._bands import CrossJob, across_view, kind, measure_crosses
 from instrument.vision._detect import CoarseLine
 from instrument.vision._linefit import _median
 from instrument.vision._types import CrossMeasurement, CrossNotFound
@@ -88,7 +87,7 @@ def _reacquire(flat, shape, line: CoarseLine, other: CoarseLine, search: int) ->
     first, last = min(base[0], base[-1]), max(base[0], base[-1]) + width - 1  # base is monotonic in s
     if first >= 0 and last < across_len:  # the usual case: the whole search band lies in the frame
         inside = None
-        values = sliding_window_view(flat, (width - 1) * step + 1)[:, ::step][base * step + s * stride]
+        values = across_view(flat, width, step)[base * step + s * stride]
         sample = np.concatenate([values[:, :EDGE_SAMPLE_ROWS].ravel(), values[:, -EDGE_SAMPLE_ROWS:].ravel()])
     else:
         across = base[:, None] + np.arange(width)[None, :]
