@@ -105,6 +105,7 @@ class Bands(NamedTuple):
     """All stripes' bands side by side: section ``i`` of stripe ``j`` is column ``starts[j] + i``."""
 
     values: np.ndarray  # (BAND_WIDTH, N) workspace array, image dtype
+    by_section: np.ndarray  # (N, BAND_WIDTH) the same pixels, one section per row (workspace array)
     valid: np.ndarray | None  # same shape (False: off the frame), or None when all pixels exist
     starts: np.ndarray  # (stripes + 1,) column bounds
     background: np.ndarray  # (N,) local background per section
@@ -166,7 +167,7 @@ def extract_bands(jobs_plans, ws: VisionWorkspace, fallback_bgs) -> Bands:
         count = (running_count[window_end] - running_count[window_low]).astype(float)
         background = np.where(count > 0.5, total / np.maximum(count, 1.0), np.repeat(fallback_bgs, sizes))
     # noise σ per stripe from the sampled sections' edge pixels
-    residual = edges[:, sampled] - background[sampled].astype(np.float32)
+    residual = by_section[sampled][:, EDGE_ROWS].T - background[sampled].astype(np.float32)
     squares = residual * residual
     if edge_weight is None:
         square_sum = np.add.reduceat(squares.sum(axis=0), sample_starts[:-1])
@@ -181,7 +182,7 @@ def extract_bands(jobs_plans, ws: VisionWorkspace, fallback_bgs) -> Bands:
         for j in np.flatnonzero(in_frame < MIN_EDGE_PIXELS):
             background[starts[j] : starts[j + 1]] = fallback_bgs[j]
             noise[j] = 0.5
-    return Bands(values, valid, starts, background, noise)
+    return Bands(values, by_section, valid, starts, background, noise)
 
 
 def half_windows(bands: Bands, levels, ws: VisionWorkspace) -> np.ndarray:
@@ -189,7 +190,7 @@ def half_windows(bands: Bands, levels, ws: VisionWorkspace) -> np.ndarray:
     the median over every SAMPLE_STRIDE-th section, saturated sections left out."""
     sizes = tuple(np.diff(bands.starts))
     _, _, _, sampled, sample_starts = _segments(ws, sizes)
-    sub = bands.values[:, sampled]
+    sub = cv2.transpose(bands.by_section[sampled])  # (BAND_WIDTH, samples): whole rows read, not columns
     background = bands.background[sampled]
     peak = sub.max(axis=0)
     half = np.ceil(0.5 * (background + peak)).astype(sub.dtype)  # x ≥ h ⟺ x ≥ ⌈h⌉ for integers
