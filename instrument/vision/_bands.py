@@ -25,8 +25,8 @@ import cv2
 import numpy as np
 
 from instrument.vision._detect import CoarseLine
-from instrument.vision._igcf import FWHM_PER_SIGMA, MAX_HALF_WINDOW, MIN_HALF_WINDOW, SectionCentres, igcf_band
-from instrument.vision._linefit import LineFit, bisquare_line
+from instrument.vision._igcf import FWHM_PER_SIGMA, MAX_HALF_WINDOW, MIN_HALF_WINDOW, SectionCentres
+from instrument.vision._linefit import LineFit
 from instrument.vision._types import CrossMeasurement, CrossNotFound, StripeLine
 from instrument.vision._workspace import VisionWorkspace
 
@@ -48,6 +48,7 @@ class BandPlan(NamedTuple):
     section ``along[i]``."""
 
     along: np.ndarray  # (N,) section index (column of a horizontal stripe, row of a vertical one)
+    position: np.ndarray  # (N,) the coarse line across the stripe in each section, px
     base: np.ndarray  # (N,) first pixel of the band across the stripe
     inside: bool  # every pixel of the band lies in the frame (the usual case)
     vertical: bool
@@ -71,7 +72,7 @@ def plan_band(shape, line: CoarseLine, other: CoarseLine, min_sections) -> BandP
         )
     base = np.rint(position).astype(np.intp) - BAND_HALF_WIDTH
     low, high = min(base[0], base[-1]), max(base[0], base[-1])  # base is monotonic along the stripe
-    return BandPlan(s, base, bool(low >= 0 and high + BAND_WIDTH <= across_len), line.vertical)
+    return BandPlan(s, position, base, bool(low >= 0 and high + BAND_WIDTH <= across_len), line.vertical)
 
 
 def across_view(flat, width: int, step: int) -> np.ndarray:
@@ -112,7 +113,7 @@ class Bands(NamedTuple):
     noise: np.ndarray  # (stripes,) noise σ per stripe
 
 
-def _segments(ws: VisionWorkspace, sizes: tuple[int, ...]):
+def segments(ws: VisionWorkspace, sizes: tuple[int, ...]):
     """Per section: the first and last section of its running-mean window within its own stripe;
     and the columns sampled for noise and width (every SAMPLE_STRIDE-th of each stripe)."""
 
@@ -137,7 +138,7 @@ def extract_bands(jobs_plans, ws: VisionWorkspace, fallback_bgs) -> Bands:
     background per band (used where a band has too few background pixels in the frame).
     """
     sizes = tuple(len(plan.along) for _, _, plan in jobs_plans)
-    starts, window_low, window_end, sampled, sample_starts = _segments(ws, sizes)
+    starts, window_low, window_end, sampled, sample_starts = segments(ws, sizes)
     n = int(starts[-1])
     dtype = np.result_type(*(flat.dtype for flat, _, _ in jobs_plans))
     by_section = ws.array("bands.by_section", (n, BAND_WIDTH), dtype)
@@ -189,7 +190,7 @@ def half_windows(bands: Bands, levels, ws: VisionWorkspace) -> np.ndarray:
     """IGCF half-window per stripe from its width at half maximum (``igcf.half_window_for_width``):
     the median over every SAMPLE_STRIDE-th section, saturated sections left out."""
     sizes = tuple(np.diff(bands.starts))
-    _, _, _, sampled, sample_starts = _segments(ws, sizes)
+    _, _, _, sampled, sample_starts = segments(ws, sizes)
     sub = cv2.transpose(bands.by_section[sampled])  # (BAND_WIDTH, samples): whole rows read, not columns
     background = bands.background[sampled]
     peak = sub.max(axis=0)
@@ -214,6 +215,8 @@ def half_windows(bands: Bands, levels, ws: VisionWorkspace) -> np.ndarray:
 
 
 class StripeFit(NamedTuple):
+    """A stripe's bisquare line through its usable centres, with what the cross reports of it."""
+
     line: LineFit  # centre = intercept + slope·along
     along: np.ndarray  # (N,) section coordinate of the centres used
     saturated: int
@@ -237,69 +240,13 @@ class CrossJob(NamedTuple):
     shape: tuple[int, int]
     horizontal: CoarseLine
     vertical: CoarseLine
-    fallback_bg: float
+    fallback_bg: float  # background where a band has too few pixels in the frame (NaN: none known)
     saturation: float
-    search: str = "full"
+    search: str = "full"  # "tracked": the lines are the previous frame's, to be checked (``_track``)
+    search_px: int = 0  # tracked: how far from its prior line a stripe is looked for
 
 
-def measure_crosses(jobs, half_window, min_sections, workspace=None) -> list[CrossMeasurement | CrossNotFound]:
-    """The sub-pixel crosses of several frames at once (every step runs once for all their stripes).
-
-    Each entry of the result is the frame's ``CrossMeasurement``, or the ``CrossNotFound`` it
-    raised (returned, not raised, so that one bad frame does not cost the others their result).
-    ``workspace`` holds the large temporaries (a fresh one if None).
-    """
-    ws = VisionWorkspace() if workspace is None else workspace
-    results: dict[int, CrossMeasurement | CrossNotFound] = {}
-    planned = []  # (job number, job, (horizontal plan, vertical plan))
-    for number, job in enumerate(jobs):
-        try:
-            plans = tuple(
-                plan_band(job.shape, line, other, min_sections)
-                for line, other in ((job.horizontal, job.vertical), (job.vertical, job.horizontal))
-            )
-        except CrossNotFound as exc:
-            results[number] = exc
-            continue
-        planned.append((number, job, plans))
-    if planned:
-        stripes = [(job.flat, job.shape, plan) for _, job, plans in planned for plan in plans]
-        levels = np.array([job.saturation for _, job, _ in planned for _ in range(2)], float)
-        bands = extract_bands(stripes, ws, np.array([job.fallback_bg for _, job, _ in planned for _ in range(2)]))
-        sizes = np.diff(bands.starts)
-        if half_window is None:  # each stripe's window from its own width
-            half_window = np.repeat(half_windows(bands, levels, ws), sizes)
-        centres = igcf_band(
-            bands.values,
-            bands.valid,
-            bands.background,
-            levels[0] if np.all(levels == levels[0]) else np.repeat(levels, sizes),
-            half_window,
-            np.repeat(MIN_AMPLITUDE_SIGMAS * bands.noise, sizes),
-            ws,
-        )
-        fitted = []  # (job number, job, stripe numbers)
-        points: list[tuple[np.ndarray, np.ndarray]] = []  # (along, centre) per stripe to fit
-        for k, (number, job, plans) in enumerate(planned):
-            try:
-                usable = [_usable_centres(plan, centres, bands, 2 * k + i, min_sections)
-                          for i, plan in enumerate(plans)]
-            except CrossNotFound as exc:
-                results[number] = exc
-                continue
-            fitted.append((number, job, usable))
-            points.extend((along, centre) for along, centre, _ in usable)
-        if points:
-            # one IRLS per stripe: a stripe's few thousand points stay in the L1 cache, which a
-            # batch of all stripes does not (measured: batching the six fits doubled their cost)
-            lines = iter([bisquare_line(along, centre) for along, centre in points])
-            for number, job, usable in fitted:
-                h_fit, v_fit = (StripeFit(next(lines), along, *extra) for along, _, extra in usable)
-                results[number] = _cross(h_fit, v_fit, job.search)
-    return [results[number] for number in range(len(jobs))]
-
-
-def _usable_centres(plan: BandPlan, centres: SectionCentres, bands: Bands, stripe: int, min_sections):
+def usable_centres(plan: BandPlan, centres: SectionCentres, bands: Bands, stripe: int, min_sections):
     """(along, centre, (saturated sections, peak level)) of one stripe's usable IGCF centres."""
     lo, hi = bands.starts[stripe], bands.starts[stripe + 1]
     ok = centres.valid[lo:hi]
@@ -314,31 +261,7 @@ def _usable_centres(plan: BandPlan, centres: SectionCentres, bands: Bands, strip
     return plan.along[ok].astype(float), centre, (int(np.count_nonzero(centres.saturated[lo:hi])), peak)
 
 
-def measure_cross(
-    flat,
-    shape,
-    horizontal: CoarseLine,
-    vertical: CoarseLine,
-    fallback_bg: float,
-    saturation: float,
-    half_window,
-    min_sections: int,
-    search: str = "full",
-    workspace=None,
-) -> CrossMeasurement:
-    """The sub-pixel cross of one frame from two coarse lines good to about a pixel.
-
-    ``flat`` is the C-contiguous frame raveled; raises ``CrossNotFound`` when a stripe has too few
-    usable sections.
-    """
-    job = CrossJob(flat, shape, horizontal, vertical, fallback_bg, saturation, search)
-    (result,) = measure_crosses([job], half_window, min_sections, workspace)
-    if isinstance(result, CrossNotFound):
-        raise result
-    return result
-
-
-def _cross(h_fit: StripeFit, v_fit: StripeFit, search: str) -> CrossMeasurement:
+def cross(h_fit: StripeFit, v_fit: StripeFit, search: str) -> CrossMeasurement:
     """Intersection and angles of the two fitted stripe lines (method.md §2.4)."""
     a_h, b_h = h_fit.line.intercept, h_fit.line.slope  # y = a_h + b_h·x
     a_v, b_v = v_fit.line.intercept, v_fit.line.slope  # x = a_v + b_v·y

@@ -151,20 +151,36 @@ def _row_indices(length: int) -> np.ndarray:
 LOG_FLOOR = np.float32(1e-10)  # pixels left out of a fit sit here: weight 1e-20, weight·ln ≈ −2e-19 (nil)
 
 
-def igcf_band(band, valid, background, saturation, half_window, min_amplitude, workspace=None):
+class BrightestRuns(NamedTuple):
+    """Per section of a band: the (masked) band they were found in, the peak value, the middle of
+    the run of pixels at the peak and its length (see :func:`brightest_runs`)."""
+
+    band: np.ndarray
+    peak: np.ndarray
+    middle: np.ndarray
+    run: np.ndarray
+
+
+def brightest_runs(band, valid, workspace) -> BrightestRuns:
+    """:func:`_brightest_runs` of a band whose off-frame pixels (``valid`` False) read as 0."""
+    if valid is not None:
+        band = np.where(valid, band, 0)  # missing pixels can never be the brightest
+    return BrightestRuns(band, *_brightest_runs(band, workspace))
+
+
+def igcf_band(band, valid, background, saturation, half_window, min_amplitude, workspace=None, runs=None):
     """:func:`igcf_centers` on a band laid out (profile length L, sections N) — the fast path.
 
     ``band`` is an integer (or float) array; ``valid`` a bool array of the same shape or None
     (every pixel exists); ``workspace`` a :class:`VisionWorkspace` for the large temporaries (a
-    fresh one if None). Element-wise work is done in float32 on the 2h+1-row window only; the
-    moment sums and the 3×3 solution in float64.
+    fresh one if None); ``runs`` the band's :func:`brightest_runs` if already known. Element-wise
+    work is done in float32 on the 2h+1-row window only; the moment sums and the 3×3 solution in
+    float64.
     """
     ws = VisionWorkspace() if workspace is None else workspace
     length, n = band.shape
     bg = np.broadcast_to(np.asarray(background, dtype=float), (n,))
-    if valid is not None:
-        band = np.where(valid, band, 0)  # missing pixels can never be the brightest
-    peak_raw, middle, run = _brightest_runs(band, ws)
+    band, peak_raw, middle, run = brightest_runs(band, valid, ws) if runs is None else runs
     amplitude = peak_raw - bg
     # coarse centre: the middle of the brightest run (the saturated plateau, or the peak pixel)
     coarse = middle.astype(np.intp)  # floor: middle ≥ 0
