@@ -27,6 +27,7 @@ import numpy as np
 from instrument.vision._detect import CoarseLine
 from instrument.vision._igcf import FWHM_PER_SIGMA, MAX_HALF_WINDOW, MIN_HALF_WINDOW, SectionCentres
 from instrument.vision._linefit import LineFit
+from instrument.vision._strided import across_view
 from instrument.vision._types import CrossMeasurement, CrossNotFound, StripeLine
 from instrument.vision._workspace import VisionWorkspace
 
@@ -54,37 +55,44 @@ class BandPlan(NamedTuple):
     vertical: bool
 
 
-def plan_band(shape, line: CoarseLine, other: CoarseLine, min_sections) -> BandPlan:
-    """The sections of the band around ``line``, the crossing zone left out."""
-    rows, cols = shape
-    n_sections, across_len = (rows, cols) if line.vertical else (cols, rows)
-    s = np.arange(n_sections)
-    position = line.at(s)
-    # leave out the crossing: sections where the other stripe passes within the band
-    reach = BAND_HALF_WIDTH * (1.0 + abs(other.slope)) + BAND_HALF_WIDTH
-    keep = np.abs(s - other.at(position)) > reach
-    keep &= (position > -BAND_HALF_WIDTH) & (position < across_len - 1 + BAND_HALF_WIDTH)
-    s, position = s[keep], position[keep]
-    if len(s) < min_sections:
-        raise CrossNotFound(
-            f"{kind(line.vertical)} stripe too short to fit: {len(s)} cross-sections outside the "
-            f"crossing zone (need ≥ {min_sections})"
-        )
-    base = np.rint(position).astype(np.intp) - BAND_HALF_WIDTH
-    low, high = min(base[0], base[-1]), max(base[0], base[-1])  # base is monotonic along the stripe
-    return BandPlan(s, position, base, bool(low >= 0 and high + BAND_WIDTH <= across_len), line.vertical)
+def plan_bands(stripes, min_sections, ws: VisionWorkspace) -> list[BandPlan | CrossNotFound]:
+    """The sections of the band around each stripe's line, the crossing zone left out.
 
-
-def across_view(flat, width: int, step: int) -> np.ndarray:
-    """Read-only view of a raveled frame whose row i is the ``width`` pixels from flat index i in
-    steps of ``step`` (1: along an image row, the row length: down a column), so that one
-    fancy-index read with N start indices gathers N cross-sections — no (N, width) index array.
-    (A direct ndarray over the buffer: ``sliding_window_view`` costs more to set up than the read.)
+    ``stripes`` is a list of (frame shape, line, the other stripe's line); all of them are worked
+    out in one pass over their sections. A stripe with fewer than ``min_sections`` sections gets
+    the ``CrossNotFound`` that says so.
     """
-    rows = flat.size - (width - 1) * step
-    view = np.ndarray((rows, width), flat.dtype, flat, 0, (flat.itemsize, step * flat.itemsize))
-    view.flags.writeable = False
-    return view
+    if not stripes:
+        return []
+    lengths = [(shape[0], shape[1]) if line.vertical else (shape[1], shape[0]) for shape, line, _ in stripes]
+    sizes = tuple(n for n, _ in lengths)
+    s, stripe = ws.cached(("plan", sizes), lambda: (np.concatenate([np.arange(n) for n in sizes]),
+                                                     np.repeat(np.arange(len(sizes)), sizes)))
+    per_stripe = np.array([(line.intercept, line.slope, other.intercept, other.slope,
+                            BAND_HALF_WIDTH * (1.0 + abs(other.slope)) + BAND_HALF_WIDTH, across - 1 + BAND_HALF_WIDTH)
+                           for (_, line, other), (_, across) in zip(stripes, lengths)])
+    intercept, slope, other_intercept, other_slope, reach, far_edge = per_stripe.T[:, stripe]
+    position = intercept + slope * s
+    # leave out the crossing: sections where the other stripe passes within the band
+    keep = np.abs(s - (other_intercept + other_slope * position)) > reach
+    keep &= (position > -BAND_HALF_WIDTH) & (position < far_edge)
+    kept = np.add.reduceat(keep, np.concatenate([[0], np.cumsum(sizes[:-1])]).astype(np.intp))
+    bounds = np.concatenate([[0], np.cumsum(kept)])
+    s, position = s[keep], position[keep]
+    base = np.rint(position).astype(np.intp) - BAND_HALF_WIDTH
+    plans: list[BandPlan | CrossNotFound] = []
+    for j, ((_, line, _), (_, across)) in enumerate(zip(stripes, lengths)):
+        if kept[j] < min_sections:
+            plans.append(CrossNotFound(
+                f"{kind(line.vertical)} stripe too short to fit: {kept[j]} cross-sections outside the "
+                f"crossing zone (need ≥ {min_sections})"
+            ))
+            continue
+        lo, hi = bounds[j], bounds[j + 1]
+        low, high = min(base[lo], base[hi - 1]), max(base[lo], base[hi - 1])  # base is monotonic along the stripe
+        plans.append(BandPlan(s[lo:hi], position[lo:hi], base[lo:hi], bool(low >= 0 and high + BAND_WIDTH <= across),
+                              line.vertical))
+    return plans
 
 
 def _gather(flat, shape, plan: BandPlan, out, valid_out) -> None:

@@ -19,7 +19,7 @@ from instrument.vision._bands import (
     cross,
     extract_bands,
     half_windows,
-    plan_band,
+    plan_bands,
     usable_centres,
 )
 from instrument.vision._detect import CoarseLine
@@ -50,16 +50,15 @@ def measure_crosses(jobs, half_window, min_sections,
     lines = {number: (job.horizontal, job.vertical) for number, job in enumerate(jobs)}
     check_priors = any(job.search == "tracked" for job in jobs)
     while True:
+        pending = [number for number in range(len(jobs)) if number not in results]
+        all_plans = plan_bands([(jobs[number].shape, *pair) for number in pending
+                                for pair in (lines[number], lines[number][::-1])], min_sections, ws)
         planned = []  # (job number, job, (horizontal plan, vertical plan))
-        for number, job in enumerate(jobs):
-            if number in results:
-                continue
-            horizontal, vertical = lines[number]
-            try:
-                plans = (plan_band(job.shape, horizontal, vertical, min_sections),
-                         plan_band(job.shape, vertical, horizontal, min_sections))
-            except CrossNotFound as exc:
-                results[number] = PriorLost(f"tracked fit failed: {exc}") if job.search == "tracked" else exc
+        for k, number in enumerate(pending):
+            job, plans = jobs[number], all_plans[2 * k : 2 * k + 2]
+            failed = next((plan for plan in plans if isinstance(plan, CrossNotFound)), None)
+            if failed is not None:
+                results[number] = PriorLost(f"tracked fit failed: {failed}") if job.search == "tracked" else failed
                 continue
             planned.append((number, job, plans))
         if not planned:
@@ -116,6 +115,7 @@ def _finish(planned, bands, runs, results, half_window, min_sections, ws, n_jobs
         np.repeat(MIN_AMPLITUDE_SIGMAS * bands.noise, sizes),
         ws,
         runs,
+        bands.by_section,
     )
     for k, (number, job, plans) in enumerate(planned):
         try:

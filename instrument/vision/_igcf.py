@@ -18,9 +18,11 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import cv2
 import numpy as np
 
 from instrument.vision._linefit import _median
+from instrument.vision._strided import across_view
 from instrument.vision._workspace import VisionWorkspace
 
 MIN_HALF_WINDOW, MAX_HALF_WINDOW = 2, 4  # windows of 5…9 px (method.md §2.2)
@@ -168,12 +170,15 @@ def brightest_runs(band, valid, workspace) -> BrightestRuns:
     return BrightestRuns(band, *_brightest_runs(band, workspace))
 
 
-def igcf_band(band, valid, background, saturation, half_window, min_amplitude, workspace=None, runs=None):
+def igcf_band(band, valid, background, saturation, half_window, min_amplitude, workspace=None, runs=None,
+              by_section=None):
     """:func:`igcf_centers` on a band laid out (profile length L, sections N) — the fast path.
 
     ``band`` is an integer (or float) array; ``valid`` a bool array of the same shape or None
     (every pixel exists); ``workspace`` a :class:`VisionWorkspace` for the large temporaries (a
-    fresh one if None); ``runs`` the band's :func:`brightest_runs` if already known. Element-wise
+    fresh one if None); ``runs`` the band's :func:`brightest_runs` if already known; ``by_section``
+    the band's transpose (N, L) C-contiguous, if at hand (the windows are then read from its rows,
+    which is cheaper than gathering from the band's columns). Element-wise
     work is done in float32 on the 2h+1-row window only; the moment sums and the 3×3 solution in
     float64.
     """
@@ -216,14 +221,15 @@ def igcf_band(band, valid, background, saturation, half_window, min_amplitude, w
     # edge: noise, a hot pixel), so all sections are summed with their window moved inside the profile
     # and those few are summed again on their own with the masks
     near_end = (coarse < h_max) | (coarse >= length - h_max)
+    rows = None if valid is not None else by_section
     if not near_end.any():
-        sums, n_used = _window_sums(band, valid, coarse, window, ws, None)
+        sums, n_used = _window_sums(band, valid, coarse, window, ws, None, rows)
     else:
-        sums, n_used = _window_sums(band, valid, np.clip(coarse, h_max, length - 1 - h_max), window, ws, None)
+        sums, n_used = _window_sums(band, valid, np.clip(coarse, h_max, length - 1 - h_max), window, ws, None, rows)
         redo = np.flatnonzero(near_end)
         sums[:, redo], n_used[redo] = _window_sums(
             np.ascontiguousarray(band[:, redo]), None if valid is None else np.ascontiguousarray(valid[:, redo]),
-            coarse[redo], window.subset(redo), VisionWorkspace(), length,
+            coarse[redo], window.subset(redo), VisionWorkspace(), length, None,
         )
     s0, s1, s2, s3, s4, z0, z1, z2 = sums
     # Cramer's rule on the 3×3 normal equations; centre = −a1/(2·a2) needs only det1 and det2 (the
@@ -259,24 +265,31 @@ class _Window(NamedTuple):
         )
 
 
-def _window_sums(band, valid, coarse, window: _Window, ws, profile_length):
+def _window_sums(band, valid, coarse, window: _Window, ws, profile_length, by_section):
     """Moment sums (8, N) float64 — Σw·tᵖ for p = 0…4 and Σw·ln I·tᵖ for p = 0…2, w = I² — and the
     pixels used per section, over each section's window around ``coarse``.
 
     ``profile_length`` None: every window lies inside the profile; else the rows off it are masked.
+    ``by_section``: the band transposed (N, L), to read each window as a run of one of its rows.
     """
-    n = band.shape[1]
+    length, n = band.shape
     t = np.arange(-window.h_max, window.h_max + 1)
     rows_shape = (len(t), n)
-    index = ws.array("igcf.index", rows_shape, np.intp)
-    outside = None
-    if profile_length is None:
-        np.add((coarse * n + np.arange(n))[None, :], (t * n)[:, None], out=index)
+    values = ws.array("igcf.values", rows_shape, band.dtype)
+    outside = index = None
+    if profile_length is None and by_section is not None:
+        first = np.arange(0, n * length, length) + (coarse - window.h_max)
+        if cv2.transpose(across_view(by_section.ravel(), len(t), 1)[first], values) is not values:
+            values[...] = across_view(by_section.ravel(), len(t), 1)[first].T
     else:
-        rows = coarse[None, :] + t[:, None]
-        outside = (rows < 0) | (rows >= profile_length)
-        np.add(np.clip(rows, 0, profile_length - 1) * n, np.arange(n)[None, :], out=index)
-    values = band.ravel().take(index, out=ws.array("igcf.values", rows_shape, band.dtype), mode="clip")
+        index = ws.array("igcf.index", rows_shape, np.intp)
+        if profile_length is None:
+            np.add((coarse * n + np.arange(n))[None, :], (t * n)[:, None], out=index)
+        else:
+            rows = coarse[None, :] + t[:, None]
+            outside = (rows < 0) | (rows >= profile_length)
+            np.add(np.clip(rows, 0, profile_length - 1) * n, np.arange(n)[None, :], out=index)
+        band.ravel().take(index, out=values, mode="clip")
     level = np.subtract(values, window.background[None, :], out=ws.array("igcf.level", rows_shape, np.float32),
                         dtype=np.float32)
     level *= window.inv_scale[None, :]
@@ -289,6 +302,7 @@ def _window_sums(band, valid, coarse, window: _Window, ws, profile_length):
     if outside is not None:
         level[outside] = 0.0
     if valid is not None:
+        assert index is not None  # windows of a band with missing pixels are read through ``index``
         level[~valid.ravel().take(index)] = 0.0
     if window.plateau is not None:
         level[(values >= window.saturation) & window.plateau[None, :]] = 0.0

@@ -33,10 +33,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from instrument.vision._bands import BAND_HALF_WIDTH, SAMPLE_STRIDE, BandPlan, Bands, across_view, kind, segments
+from instrument.vision._bands import BAND_HALF_WIDTH, SAMPLE_STRIDE, BandPlan, Bands, kind, segments
 from instrument.vision._detect import CoarseLine
 from instrument.vision._igcf import BrightestRuns
 from instrument.vision._linefit import _median
+from instrument.vision._strided import across_view
 from instrument.vision._types import CrossMeasurement, CrossNotFound
 
 TRACK_SEARCH_PX = 24  # default half-width of the re-acquisition band around each prior line, px
