@@ -19,6 +19,7 @@ The large arrays live in a :class:`VisionWorkspace` (see there for why).
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import cv2
@@ -55,44 +56,61 @@ class BandPlan(NamedTuple):
     vertical: bool
 
 
-def plan_bands(stripes, min_sections, ws: VisionWorkspace) -> list[BandPlan | CrossNotFound]:
-    """The sections of the band around each stripe's line, the crossing zone left out.
-
-    ``stripes`` is a list of (frame shape, line, the other stripe's line); all of them are worked
-    out in one pass over their sections. A stripe with fewer than ``min_sections`` sections gets
-    the ``CrossNotFound`` that says so.
-    """
-    if not stripes:
-        return []
-    lengths = [(shape[0], shape[1]) if line.vertical else (shape[1], shape[0]) for shape, line, _ in stripes]
-    sizes = tuple(n for n, _ in lengths)
-    s, stripe = ws.cached(("plan", sizes), lambda: (np.concatenate([np.arange(n) for n in sizes]),
-                                                     np.repeat(np.arange(len(sizes)), sizes)))
-    per_stripe = np.array([(line.intercept, line.slope, other.intercept, other.slope,
-                            BAND_HALF_WIDTH * (1.0 + abs(other.slope)) + BAND_HALF_WIDTH, across - 1 + BAND_HALF_WIDTH)
-                           for (_, line, other), (_, across) in zip(stripes, lengths)])
-    intercept, slope, other_intercept, other_slope, reach, far_edge = per_stripe.T[:, stripe]
-    position = intercept + slope * s
-    # leave out the crossing: sections where the other stripe passes within the band
-    keep = np.abs(s - (other_intercept + other_slope * position)) > reach
-    keep &= (position > -BAND_HALF_WIDTH) & (position < far_edge)
-    kept = np.add.reduceat(keep, np.concatenate([[0], np.cumsum(sizes[:-1])]).astype(np.intp))
-    bounds = np.concatenate([[0], np.cumsum(kept)])
-    s, position = s[keep], position[keep]
+def plan_band(shape, line: CoarseLine, other: CoarseLine, min_sections) -> BandPlan:
+    """The sections of the band around ``line``, the crossing zone left out."""
+    rows, cols = shape
+    n_sections, across_len = (rows, cols) if line.vertical else (cols, rows)
+    s = _kept_sections(n_sections, across_len, line, other)
+    if len(s) < min_sections:
+        raise CrossNotFound(
+            f"{kind(line.vertical)} stripe too short to fit: {len(s)} cross-sections outside the "
+            f"crossing zone (need ≥ {min_sections})"
+        )
+    position = line.intercept + line.slope * s.astype(float)
     base = np.rint(position).astype(np.intp) - BAND_HALF_WIDTH
-    plans: list[BandPlan | CrossNotFound] = []
-    for j, ((_, line, _), (_, across)) in enumerate(zip(stripes, lengths)):
-        if kept[j] < min_sections:
-            plans.append(CrossNotFound(
-                f"{kind(line.vertical)} stripe too short to fit: {kept[j]} cross-sections outside the "
-                f"crossing zone (need ≥ {min_sections})"
-            ))
-            continue
-        lo, hi = bounds[j], bounds[j + 1]
-        low, high = min(base[lo], base[hi - 1]), max(base[lo], base[hi - 1])  # base is monotonic along the stripe
-        plans.append(BandPlan(s[lo:hi], position[lo:hi], base[lo:hi], bool(low >= 0 and high + BAND_WIDTH <= across),
-                              line.vertical))
-    return plans
+    low, high = min(base[0], base[-1]), max(base[0], base[-1])  # base is monotonic along the stripe
+    return BandPlan(s, position, base, bool(low >= 0 and high + BAND_WIDTH <= across_len), line.vertical)
+
+
+def _kept_sections(n_sections: int, across_len: int, line: CoarseLine, other: CoarseLine) -> np.ndarray:
+    """The sections that enter the band, in order: outside the crossing zone (the other stripe
+    passes farther than the band's reach) and with the line inside the frame (to within the band).
+
+    Each condition is linear in the section index s, so the kept sections are at most two runs;
+    their ends are found near the analytic crossing points, where the condition is evaluated
+    exactly as an elementwise float64 test would (Python floats are IEEE doubles), ±3 sections.
+    """
+    reach = BAND_HALF_WIDTH * (1.0 + abs(other.slope)) + BAND_HALF_WIDTH
+    far_edge = across_len - 1 + BAND_HALF_WIDTH
+
+    def keep(s: int) -> bool:
+        position = line.intercept + line.slope * s
+        return (abs(s - (other.intercept + other.slope * position)) > reach
+                and -BAND_HALF_WIDTH < position < far_edge)
+
+    # where s − other(line(s)) = c·s − d meets ±reach, and line(s) meets −H and far_edge
+    c = 1.0 - other.slope * line.slope
+    d = other.intercept + other.slope * line.intercept
+    points = [(d - reach) / c, (d + reach) / c] if c != 0 else []
+    if line.slope != 0:
+        points += [(-BAND_HALF_WIDTH - line.intercept) / line.slope, (far_edge - line.intercept) / line.slope]
+    near = sorted({0, n_sections - 1} | {
+        p for x in points if math.isfinite(x) and -4 < x < n_sections + 4
+        for p in range(math.floor(x) - 3, math.floor(x) + 4) if 0 <= p < n_sections
+    })
+    # kept is constant between consecutive probe points: one test inside each gap decides it
+    runs: list[tuple[int, int]] = []  # [start, stop) of kept sections
+    for here, after in zip(near, [*near[1:], None]):
+        pieces = [(here, here + 1)] if after is None or after == here + 1 else [(here, here + 1), (here + 1, after)]
+        for start, stop in pieces:
+            if keep(start if stop - start == 1 else (start + stop) // 2):
+                if runs and runs[-1][1] == start:
+                    runs[-1] = (runs[-1][0], stop)
+                else:
+                    runs.append((start, stop))
+    if len(runs) == 1:
+        return np.arange(*runs[0])
+    return np.concatenate([np.arange(start, stop) for start, stop in runs]) if runs else np.empty(0, np.intp)
 
 
 def _gather(flat, shape, plan: BandPlan, out, valid_out) -> None:
@@ -254,19 +272,28 @@ class CrossJob(NamedTuple):
     search_px: int = 0  # tracked: how far from its prior line a stripe is looked for
 
 
-def usable_centres(plan: BandPlan, centres: SectionCentres, bands: Bands, stripe: int, min_sections):
-    """(along, centre, (saturated sections, peak level)) of one stripe's usable IGCF centres."""
-    lo, hi = bands.starts[stripe], bands.starts[stripe + 1]
-    ok = centres.valid[lo:hi]
-    n_ok = int(np.count_nonzero(ok))
-    if n_ok < min_sections:
-        raise CrossNotFound(
-            f"{kind(plan.vertical)} stripe too short to fit: {n_ok} usable cross-sections "
-            f"(need ≥ {min_sections})"
-        )
-    centre = plan.base[ok] + centres.center[lo:hi][ok]
-    peak = float((centres.peak[lo:hi] + bands.background[lo:hi])[ok].max())
-    return plan.along[ok].astype(float), centre, (int(np.count_nonzero(centres.saturated[lo:hi])), peak)
+def usable_centres(plans: list[BandPlan], centres: SectionCentres, bands: Bands):
+    """Per stripe: (along, centre, saturated sections, peak level) of its usable IGCF centres —
+    all stripes' selected at once (one index, a few gathers), then cut per stripe."""
+    starts = bands.starts[:-1]
+    ok = centres.valid
+    used = np.flatnonzero(ok)
+    bounds = np.concatenate([[0], np.cumsum(np.add.reduceat(ok, starts))])
+    along = np.concatenate([plan.along for plan in plans]).take(used).astype(float)
+    centre = np.concatenate([plan.base for plan in plans]).take(used) + centres.center.take(used)
+    peaks = np.maximum.reduceat(np.where(ok, centres.peak + bands.background, -np.inf), starts)
+    saturated = np.add.reduceat(centres.saturated, starts)
+    return [(along[lo:hi], centre[lo:hi], int(saturated[j]), float(peaks[j]))
+            for j, (lo, hi) in enumerate(zip(bounds[:-1], bounds[1:]))]
+
+
+def too_short(plan: BandPlan, n_usable: int, min_sections: int) -> CrossNotFound | None:
+    """The error for a stripe with fewer usable sections than ``min_sections``, else None."""
+    if n_usable >= min_sections:
+        return None
+    return CrossNotFound(
+        f"{kind(plan.vertical)} stripe too short to fit: {n_usable} usable cross-sections (need ≥ {min_sections})"
+    )
 
 
 def cross(h_fit: StripeFit, v_fit: StripeFit, search: str) -> CrossMeasurement:

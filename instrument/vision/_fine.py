@@ -19,7 +19,8 @@ from instrument.vision._bands import (
     cross,
     extract_bands,
     half_windows,
-    plan_bands,
+    plan_band,
+    too_short,
     usable_centres,
 )
 from instrument.vision._detect import CoarseLine
@@ -50,15 +51,16 @@ def measure_crosses(jobs, half_window, min_sections,
     lines = {number: (job.horizontal, job.vertical) for number, job in enumerate(jobs)}
     check_priors = any(job.search == "tracked" for job in jobs)
     while True:
-        pending = [number for number in range(len(jobs)) if number not in results]
-        all_plans = plan_bands([(jobs[number].shape, *pair) for number in pending
-                                for pair in (lines[number], lines[number][::-1])], min_sections, ws)
         planned = []  # (job number, job, (horizontal plan, vertical plan))
-        for k, number in enumerate(pending):
-            job, plans = jobs[number], all_plans[2 * k : 2 * k + 2]
-            failed = next((plan for plan in plans if isinstance(plan, CrossNotFound)), None)
-            if failed is not None:
-                results[number] = PriorLost(f"tracked fit failed: {failed}") if job.search == "tracked" else failed
+        for number, job in enumerate(jobs):
+            if number in results:
+                continue
+            horizontal, vertical = lines[number]
+            try:
+                plans = (plan_band(job.shape, horizontal, vertical, min_sections),
+                         plan_band(job.shape, vertical, horizontal, min_sections))
+            except CrossNotFound as exc:
+                results[number] = PriorLost(f"tracked fit failed: {exc}") if job.search == "tracked" else exc
                 continue
             planned.append((number, job, plans))
         if not planned:
@@ -117,15 +119,17 @@ def _finish(planned, bands, runs, results, half_window, min_sections, ws, n_jobs
         runs,
         bands.by_section,
     )
+    usable = usable_centres([plan for _, _, plans in planned for plan in plans], centres, bands)
     for k, (number, job, plans) in enumerate(planned):
-        try:
-            usable = [usable_centres(plan, centres, bands, 2 * k + i, min_sections) for i, plan in enumerate(plans)]
-        except CrossNotFound as exc:
-            results[number] = exc
+        pair = usable[2 * k : 2 * k + 2]
+        failed = next(filter(None, (too_short(plan, len(u[0]), min_sections) for plan, u in zip(plans, pair))), None)
+        if failed is not None:
+            results[number] = failed
             continue
         # one IRLS per stripe: a stripe's few thousand points stay in the L1 cache, which a batch of
         # all stripes does not (measured: batching the six fits of a trigger doubled their cost)
-        h_fit, v_fit = (StripeFit(bisquare_line(along, centre), along, *extra) for along, centre, extra in usable)
+        h_fit, v_fit = (StripeFit(bisquare_line(along, centre), along, saturated, peak)
+                        for along, centre, saturated, peak in pair)
         results[number] = cross(h_fit, v_fit, job.search)
     return [results[number] for number in range(n_jobs)]
 
