@@ -139,7 +139,18 @@ class Bands(NamedTuple):
     noise: np.ndarray  # (stripes,) noise σ per stripe
 
 
-def segments(ws: VisionWorkspace, sizes: tuple[int, ...]):
+class Segments(NamedTuple):
+    """Index arrays that depend only on how many sections each stripe has (cached per layout)."""
+
+    starts: np.ndarray  # (stripes + 1,) first section of each stripe, and the total
+    window_low: np.ndarray  # (N,) first section of each section's running-mean window (same stripe)
+    window_end: np.ndarray  # (N,) one past its last
+    edge_count: np.ndarray  # (N,) edge pixels in that window when all exist
+    sampled: np.ndarray  # every SAMPLE_STRIDE-th section of each stripe
+    sample_starts: np.ndarray  # (stripes + 1,) where each stripe's samples start in ``sampled``
+
+
+def segments(ws: VisionWorkspace, sizes: tuple[int, ...]) -> Segments:
     """Per section: the first and last section of its running-mean window within its own stripe;
     and the columns sampled for noise and width (every SAMPLE_STRIDE-th of each stripe)."""
 
@@ -152,7 +163,7 @@ def segments(ws: VisionWorkspace, sizes: tuple[int, ...]):
         low, high = np.maximum(i - half, stripe_start), np.minimum(i + half, stripe_last)
         sampled = np.concatenate([np.arange(lo, hi, SAMPLE_STRIDE) for lo, hi in zip(starts[:-1], starts[1:])])
         sample_starts = np.concatenate([[0], np.cumsum([-(-n // SAMPLE_STRIDE) for n in sizes])])
-        return starts, low, high + 1, sampled, sample_starts
+        return Segments(starts, low, high + 1, (high + 1 - low) * float(len(EDGE_ROWS)), sampled, sample_starts)
 
     return ws.cached(("segments", sizes), make)
 
@@ -164,7 +175,7 @@ def extract_bands(jobs_plans, ws: VisionWorkspace, fallback_bgs) -> Bands:
     background per band (used where a band has too few background pixels in the frame).
     """
     sizes = tuple(len(plan.along) for _, _, plan in jobs_plans)
-    starts, window_low, window_end, sampled, sample_starts = segments(ws, sizes)
+    starts, window_low, window_end, edge_count, sampled, sample_starts = segments(ws, sizes)
     n = int(starts[-1])
     dtype = np.result_type(*(flat.dtype for flat, _, _ in jobs_plans))
     by_section = ws.array("bands.by_section", (n, BAND_WIDTH), dtype)
@@ -186,8 +197,7 @@ def extract_bands(jobs_plans, ws: VisionWorkspace, fallback_bgs) -> Bands:
     np.cumsum(edge_sum, out=running[1:])
     total = running[window_end] - running[window_low]
     if edge_weight is None:
-        count = (window_end - window_low) * float(len(EDGE_ROWS))
-        background = total / count
+        background = total / edge_count
     else:
         running_count = np.zeros(n + 1, np.int64)
         np.cumsum(edge_weight.sum(axis=0), out=running_count[1:])
@@ -216,7 +226,7 @@ def half_windows(bands: Bands, levels, ws: VisionWorkspace) -> np.ndarray:
     """IGCF half-window per stripe from its width at half maximum (``igcf.half_window_for_width``):
     the median over every SAMPLE_STRIDE-th section, saturated sections left out."""
     sizes = tuple(np.diff(bands.starts))
-    _, _, _, sampled, sample_starts = segments(ws, sizes)
+    sampled, sample_starts = segments(ws, sizes)[-2:]
     sub = cv2.transpose(bands.by_section[sampled])  # (BAND_WIDTH, samples): whole rows read, not columns
     background = bands.background[sampled]
     peak = sub.max(axis=0)

@@ -170,7 +170,7 @@ def prior_band_verdicts(bands: Bands, runs: BrightestRuns, plans: list[BandPlan]
     ±search_px search samples): their brightest pixels place the line to a few hundredths of a pixel.
     """
     sizes = tuple(int(n) for n in np.diff(bands.starts))
-    _, _, _, sampled, sample_starts = segments(ws, sizes)
+    sampled, sample_starts = segments(ws, sizes)[-2:]
     counts = np.diff(sample_starts)
     first = sample_starts[:-1]
     stripe = np.repeat(np.arange(len(sizes)), counts)
@@ -185,7 +185,8 @@ def prior_band_verdicts(bands: Bands, runs: BrightestRuns, plans: list[BandPlan]
     a, b = _lines_per_stripe(first, u, offset, standing)
     inliers = standing & (np.abs(offset - (a[stripe] + b[stripe] * u)) <= INLIER_PX)
     n_inliers = np.add.reduceat(inliers, first)
-    a, b = _lines_per_stripe(first, u, offset, inliers)
+    if np.any(n_inliers < found):  # refit without the stray peaks (hot pixels, a reflection)
+        a, b = _lines_per_stripe(first, u, offset, inliers)
     verdicts: list[bool | CoarseLine] = []
     for j, line in enumerate(lines):
         if found[j] < max(4, MIN_FOUND_FRACTION * counts[j]) or n_inliers[j] < MIN_INLIER_FRACTION * found[j]:
