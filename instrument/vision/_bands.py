@@ -73,44 +73,66 @@ def plan_band(shape, line: CoarseLine, other: CoarseLine, min_sections) -> BandP
 
 
 def _kept_sections(n_sections: int, across_len: int, line: CoarseLine, other: CoarseLine) -> np.ndarray:
-    """The sections that enter the band, in order: outside the crossing zone (the other stripe
-    passes farther than the band's reach) and with the line inside the frame (to within the band).
+    """The sections that enter the band, in order: with the line inside the frame (to within the
+    band) and outside the crossing zone (the other stripe passes farther than the band's reach).
 
-    Each condition is linear in the section index s, so the kept sections are at most two runs;
-    their ends are found near the analytic crossing points, where the condition is evaluated
-    exactly as an elementwise float64 test would (Python floats are IEEE doubles), ±3 sections.
+    Both conditions are linear in the section index s: the first holds on one run of sections,
+    the second outside one run. Each run's ends are found from the analytic crossing point by
+    testing the condition exactly as the elementwise float64 test of :func:`_keep_mask` would
+    (Python floats are IEEE doubles) on the few sections next to it; where that does not settle
+    within a few sections (no run, a run at the frame's end), the elementwise test decides.
     """
     reach = BAND_HALF_WIDTH * (1.0 + abs(other.slope)) + BAND_HALF_WIDTH
     far_edge = across_len - 1 + BAND_HALF_WIDTH
+    a, b = line.intercept, line.slope
+    c = 1.0 - other.slope * b
+    if b == 0 or c == 0:
+        return _keep_mask_sections(n_sections, across_len, line, other)
 
-    def keep(s: int) -> bool:
-        position = line.intercept + line.slope * s
-        return (abs(s - (other.intercept + other.slope * position)) > reach
-                and -BAND_HALF_WIDTH < position < far_edge)
+    def in_frame(s: int) -> bool:
+        return -BAND_HALF_WIDTH < a + b * s < far_edge
 
-    # where s − other(line(s)) = c·s − d meets ±reach, and line(s) meets −H and far_edge
-    c = 1.0 - other.slope * line.slope
-    d = other.intercept + other.slope * line.intercept
-    points = [(d - reach) / c, (d + reach) / c] if c != 0 else []
-    if line.slope != 0:
-        points += [(-BAND_HALF_WIDTH - line.intercept) / line.slope, (far_edge - line.intercept) / line.slope]
-    near = sorted({0, n_sections - 1} | {
-        p for x in points if math.isfinite(x) and -4 < x < n_sections + 4
-        for p in range(math.floor(x) - 3, math.floor(x) + 4) if 0 <= p < n_sections
-    })
-    # kept is constant between consecutive probe points: one test inside each gap decides it
-    runs: list[tuple[int, int]] = []  # [start, stop) of kept sections
-    for here, after in zip(near, [*near[1:], None]):
-        pieces = [(here, here + 1)] if after is None or after == here + 1 else [(here, here + 1), (here + 1, after)]
-        for start, stop in pieces:
-            if keep(start if stop - start == 1 else (start + stop) // 2):
-                if runs and runs[-1][1] == start:
-                    runs[-1] = (runs[-1][0], stop)
-                else:
-                    runs.append((start, stop))
-    if len(runs) == 1:
-        return np.arange(*runs[0])
-    return np.concatenate([np.arange(start, stop) for start, stop in runs]) if runs else np.empty(0, np.intp)
+    def out_of_frame(s: int) -> bool:
+        return not in_frame(s)
+
+    def in_crossing(s: int) -> bool:
+        return not abs(s - (other.intercept + other.slope * (a + b * s))) > reach
+
+    def out_of_crossing(s: int) -> bool:
+        return not in_crossing(s)
+
+    def edge(test, guess: float) -> int | None:
+        """The s where ``test`` turns from False to True, within a few sections of ``guess``."""
+        s = math.floor(guess)
+        for _ in range(6):
+            before, here = test(s - 1), test(s)
+            if not before and here:
+                return s
+            s += -1 if before else 1
+        return None
+
+    low_edge, high_edge = (-BAND_HALF_WIDTH - a) / b, (far_edge - a) / b
+    enter, leave = edge(in_frame, min(low_edge, high_edge)), edge(out_of_frame, max(low_edge, high_edge))
+    centre = (other.intercept + other.slope * a) / c
+    zone_first, zone_stop = edge(in_crossing, centre - reach / abs(c)), edge(out_of_crossing, centre + reach / abs(c))
+    if None in (enter, leave, zone_first, zone_stop):
+        return _keep_mask_sections(n_sections, across_len, line, other)
+    assert enter is not None and leave is not None and zone_first is not None and zone_stop is not None
+    first, stop = max(enter, 0), min(leave, n_sections)
+    if first >= stop:
+        return np.arange(0)
+    zone_first, zone_stop = min(max(zone_first, first), stop), min(max(zone_stop, first), stop)
+    return np.concatenate([np.arange(first, zone_first), np.arange(max(zone_stop, zone_first), stop)])
+
+
+def _keep_mask_sections(n_sections: int, across_len: int, line: CoarseLine, other: CoarseLine) -> np.ndarray:
+    """:func:`_kept_sections` by testing every section (the general case)."""
+    s = np.arange(n_sections)
+    position = line.at(s)
+    reach = BAND_HALF_WIDTH * (1.0 + abs(other.slope)) + BAND_HALF_WIDTH
+    keep = np.abs(s - other.at(position)) > reach
+    keep &= (position > -BAND_HALF_WIDTH) & (position < across_len - 1 + BAND_HALF_WIDTH)
+    return s[keep]
 
 
 def _gather(flat, shape, plan: BandPlan, out, valid_out) -> None:
