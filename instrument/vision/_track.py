@@ -31,6 +31,8 @@ one of the rules above.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from instrument.vision._bands import BAND_HALF_WIDTH, SAMPLE_STRIDE, BandPlan, Bands, kind, segments
@@ -57,22 +59,24 @@ MAX_BAND_OFFSET = 2.0  # px: a stripe this close to its prior line is measured i
 def prior_lines(prior) -> tuple[CoarseLine, CoarseLine]:
     """The two stripe lines of a prior ``CrossMeasurement`` as coarse lines (horizontal, vertical)."""
     try:
-        h_point, h_dir = np.asarray(prior.horizontal.point, float), np.asarray(prior.horizontal.direction, float)
-        v_point, v_dir = np.asarray(prior.vertical.point, float), np.asarray(prior.vertical.direction, float)
+        h_point, h_dir, v_point, v_dir = (
+            np.asarray(vector, float) for vector in (prior.horizontal.point, prior.horizontal.direction,
+                                                     prior.vertical.point, prior.vertical.direction))
     except AttributeError:
         raise TypeError(
             f"prior must be the CrossMeasurement of the previous frame (or None), got {type(prior).__name__}"
         ) from None
-    if h_point.shape != (2,) or v_point.shape != (2,) or not np.all(np.isfinite([*h_point, *v_point])):
+    if h_point.shape != (2,) or v_point.shape != (2,) or h_dir.shape != (2,) or v_dir.shape != (2,):
         raise ValueError("prior: the stripe lines' points must be finite (x, y) pixel coordinates")
-    if not (abs(h_dir[0]) > 1e-9 and abs(v_dir[1]) > 1e-9):
+    (hx, hy), (hdx, hdy), (vx, vy), (vdx, vdy) = (h_point.tolist(), h_dir.tolist(), v_point.tolist(), v_dir.tolist())
+    if not all(map(math.isfinite, (hx, hy, vx, vy))):
+        raise ValueError("prior: the stripe lines' points must be finite (x, y) pixel coordinates")
+    if not (abs(hdx) > 1e-9 and abs(vdy) > 1e-9):
         raise ValueError("prior: a stripe direction is degenerate (horizontal stripe with no x part, or "
                          "vertical stripe with no y part)")
-    h_slope = float(h_dir[1] / h_dir[0])  # y = a + b·x
-    v_slope = float(v_dir[0] / v_dir[1])  # x = a + b·y
-    horizontal = CoarseLine(False, float(h_point[1] - h_slope * h_point[0]), h_slope, 0)
-    vertical = CoarseLine(True, float(v_point[0] - v_slope * v_point[1]), v_slope, 0)
-    return horizontal, vertical
+    h_slope = hdy / hdx  # y = a + b·x
+    v_slope = vdx / vdy  # x = a + b·y
+    return CoarseLine(False, hy - h_slope * hx, h_slope, 0), CoarseLine(True, vx - v_slope * vy, v_slope, 0)
 
 
 def _reacquire(flat, shape, line: CoarseLine, other: CoarseLine, search: int) -> tuple[CoarseLine, float] | str:
