@@ -214,9 +214,9 @@ def extract_bands(jobs_plans, ws: VisionWorkspace, fallback_bgs) -> Bands:
     # so a smooth gradient of ambient light is followed while the estimate stays quiet
     edges = values[EDGE_ROWS]
     edge_weight = None if valid is None else valid[EDGE_ROWS]
-    edge_sum = (edges if edge_weight is None else edges * edge_weight).sum(axis=0, dtype=np.int64)
+    edge_sum = np.add.reduce(edges if edge_weight is None else edges * edge_weight, axis=0, dtype=np.int64)
     running = np.zeros(n + 1, np.int64)
-    np.cumsum(edge_sum, out=running[1:])
+    edge_sum.cumsum(out=running[1:])
     total = running[window_end] - running[window_low]
     if edge_weight is None:
         background = total / edge_count
@@ -229,8 +229,8 @@ def extract_bands(jobs_plans, ws: VisionWorkspace, fallback_bgs) -> Bands:
     residual = by_section[sampled][:, EDGE_ROWS].T - background[sampled].astype(np.float32)
     squares = residual * residual
     if edge_weight is None:
-        square_sum = np.add.reduceat(squares.sum(axis=0), sample_starts[:-1])
-        pixels = np.diff(sample_starts) * float(len(EDGE_ROWS))
+        square_sum = np.add.reduceat(np.add.reduce(squares, axis=0), sample_starts[:-1])
+        pixels = (sample_starts[1:] - sample_starts[:-1]) * float(len(EDGE_ROWS))
     else:
         weight = edge_weight[:, sampled]
         square_sum = np.add.reduceat((squares * weight).sum(axis=0), sample_starts[:-1])
@@ -247,15 +247,16 @@ def extract_bands(jobs_plans, ws: VisionWorkspace, fallback_bgs) -> Bands:
 def half_windows(bands: Bands, levels, ws: VisionWorkspace) -> np.ndarray:
     """IGCF half-window per stripe from its width at half maximum (``igcf.half_window_for_width``):
     the median over every SAMPLE_STRIDE-th section, saturated sections left out."""
-    sizes = tuple(np.diff(bands.starts))
+    sizes = tuple((bands.starts[1:] - bands.starts[:-1]).tolist())
     sampled, sample_starts = segments(ws, sizes)[-2:]
     sub = cv2.transpose(bands.by_section[sampled])  # (BAND_WIDTH, samples): whole rows read, not columns
     background = bands.background[sampled]
-    peak = sub.max(axis=0)
+    peak = np.maximum.reduce(sub, axis=0)
     half = np.ceil(0.5 * (background + peak)).astype(sub.dtype)  # x ≥ h ⟺ x ≥ ⌈h⌉ for integers
-    widths = (sub >= half[None, :]).sum(axis=0)
-    stripe = np.repeat(np.arange(len(sizes)), np.diff(sample_starts))
-    usable = (peak > background) & (peak < np.repeat(levels, np.diff(sample_starts)))
+    widths = np.add.reduce(sub >= half[None, :], axis=0)
+    samples = sample_starts[1:] - sample_starts[:-1]
+    stripe = np.arange(len(sizes)).repeat(samples)
+    usable = (peak > background) & (peak < levels.repeat(samples))
     # median width per stripe from a histogram of the (small, integer) widths
     bins = BAND_WIDTH + 1
     histogram = np.bincount(stripe[usable] * bins + widths[usable], minlength=len(sizes) * bins)
@@ -263,13 +264,13 @@ def half_windows(bands: Bands, levels, ws: VisionWorkspace) -> np.ndarray:
     count = cumulative[:, -1]
 
     def order_statistic(k):  # the k-th smallest width of each stripe (0-based)
-        return np.argmax(cumulative > k[:, None], axis=1)
+        return (cumulative > k[:, None]).argmax(axis=1)
 
     middle = count // 2
     fwhm = np.where(count % 2 == 1, order_statistic(middle), 0.5 * (order_statistic(np.maximum(middle - 1, 0))
                                                                      + order_statistic(middle)))
     fwhm = np.where(count > 0, fwhm, FWHM_PER_SIGMA * 2.0)  # nothing to measure: assume σ = 2 px
-    return np.clip(np.rint(0.85 * fwhm), MIN_HALF_WINDOW, MAX_HALF_WINDOW).astype(np.intp)
+    return np.minimum(np.maximum(np.rint(0.85 * fwhm), MIN_HALF_WINDOW), MAX_HALF_WINDOW).astype(np.intp)
 
 
 class StripeFit(NamedTuple):
@@ -283,8 +284,8 @@ class StripeFit(NamedTuple):
 
 def _stripe_line(fit: StripeFit, vertical: bool) -> StripeLine:
     line = fit.line
-    used = int(np.count_nonzero(line.weights))
-    mean = float(line.weights @ fit.along / line.weights.sum())
+    used = int(np.add.reduce(line.weights != 0))
+    mean = float(line.weights @ fit.along / np.add.reduce(line.weights))
     dependent = line.intercept + line.slope * mean
     direction = np.array([line.slope, 1.0] if vertical else [1.0, line.slope]) / np.hypot(1.0, line.slope)
     point = np.array([dependent, mean] if vertical else [mean, dependent])
@@ -309,8 +310,8 @@ def usable_centres(plans: list[BandPlan], centres: SectionCentres, bands: Bands)
     all stripes' selected at once (one index, a few gathers), then cut per stripe."""
     starts = bands.starts[:-1]
     ok = centres.valid
-    used = np.flatnonzero(ok)
-    bounds = np.concatenate([[0], np.cumsum(np.add.reduceat(ok, starts))])
+    used = ok.nonzero()[0]
+    bounds = np.concatenate([[0], np.add.reduceat(ok, starts).cumsum()])
     along = np.concatenate([plan.along for plan in plans]).take(used).astype(float)
     centre = np.concatenate([plan.base for plan in plans]).take(used) + centres.center.take(used)
     peaks = np.maximum.reduceat(np.where(ok, centres.peak + bands.background, -np.inf), starts)

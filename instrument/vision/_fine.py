@@ -104,17 +104,17 @@ def _follow_priors(planned, bands, runs, lines, results, ws) -> bool:
 
 def _finish(planned, bands, runs, results, half_window, min_sections, ws, n_jobs):
     """IGCF, line fits and crosses of the planned frames' bands."""
-    sizes = np.diff(bands.starts)
+    sizes = bands.starts[1:] - bands.starts[:-1]
     levels = np.array([job.saturation for _, job, _ in planned for _ in range(2)], float)
     if half_window is None:  # each stripe's window from its own width
-        half_window = np.repeat(half_windows(bands, levels, ws), sizes)
+        half_window = half_windows(bands, levels, ws).repeat(sizes)
     centres = igcf_band(
         bands.values,
         bands.valid,
         bands.background,
-        levels[0] if np.all(levels == levels[0]) else np.repeat(levels, sizes),
+        levels[0] if np.logical_and.reduce(levels == levels[0]) else levels.repeat(sizes),
         half_window,
-        np.repeat(MIN_AMPLITUDE_SIGMAS * bands.noise, sizes),
+        (MIN_AMPLITUDE_SIGMAS * bands.noise).repeat(sizes),
         ws,
         runs,
         bands.by_section,

@@ -127,7 +127,7 @@ def _brightest_runs(band, workspace):
     contiguous run (a saturated plateau, or the single peak pixel) the mean index is the run's middle.
     """
     length, n = band.shape
-    peak = band.max(axis=0)
+    peak = np.maximum.reduce(band, axis=0)
     at_peak = np.equal(band, peak[None, :], out=workspace.array("igcf.at_peak", band.shape, bool))
     small = length <= 255  # counts and indices fit one byte, index sums two: the cheapest reductions
     count = np.add.reduce(at_peak, axis=0, dtype=np.uint8 if small else np.uint32)
@@ -184,7 +184,10 @@ def igcf_band(band, valid, background, saturation, half_window, min_amplitude, w
     """
     ws = VisionWorkspace() if workspace is None else workspace
     length, n = band.shape
-    bg = np.broadcast_to(np.asarray(background, dtype=float), (n,))
+    if isinstance(background, np.ndarray) and background.shape == (n,) and background.dtype == float:
+        bg = background  # the usual case; np.broadcast_to is slow to call
+    else:
+        bg = np.broadcast_to(np.asarray(background, dtype=float), (n,))
     band, peak_raw, middle, run = brightest_runs(band, valid, ws) if runs is None else runs
     amplitude = peak_raw - bg
     # coarse centre: the middle of the brightest run (the saturated plateau, or the peak pixel)
@@ -200,19 +203,20 @@ def igcf_band(band, valid, background, saturation, half_window, min_amplitude, w
         contained &= valid[np.maximum(first_i - 1, 0), cols] & valid[np.minimum(last_i + 1, length - 1), cols]
 
     plateau = None
-    h_sec = np.broadcast_to(np.asarray(half_window if half_window is not None else 0, dtype=np.intp), (n,))
+    h_sec = (half_window if getattr(half_window, "shape", None) == (n,)
+             else np.broadcast_to(np.asarray(half_window if half_window is not None else 0, dtype=np.intp), (n,)))
     if saturation is not None:
         plateau = (peak_raw >= saturation) & (run >= 2)  # ≥ 2 neighbouring saturated pixels
-        if plateau.any():
+        if np.logical_or.reduce(plateau):
             # widen the window over a removed plateau so both flanks keep h pixels
             h_sec = h_sec + (np.where(plateau, run, 0).astype(np.intp) + 1) // 2
         else:
             plateau = None
     if half_window is None:
         h_sec = h_sec + half_window_for_width(stripe_fwhm(band, bg, saturation))
-    h_max = int(min(h_sec.max(initial=MIN_HALF_WINDOW), (length - 1) // 2))
+    h_max = int(min(np.maximum.reduce(h_sec, initial=MIN_HALF_WINDOW), (length - 1) // 2))
     h_sec = np.minimum(h_sec, h_max)
-    h_min = int(h_sec.min(initial=h_max))
+    h_min = int(np.minimum.reduce(h_sec, initial=h_max))
 
     # normalised to the section's amplitude: the I² weights and logs stay O(1) for any bit depth
     inv_scale = (1.0 / np.where(amplitude > 0, amplitude, 1.0)).astype(np.float32)
@@ -222,7 +226,7 @@ def igcf_band(band, valid, background, saturation, half_window, min_amplitude, w
     # and those few are summed again on their own with the masks
     near_end = (coarse < h_max) | (coarse >= length - h_max)
     rows = None if valid is not None else by_section
-    if not near_end.any():
+    if not np.logical_or.reduce(near_end):
         sums, n_used = _window_sums(band, valid, coarse, window, ws, None, rows)
     else:
         sums, n_used = _window_sums(band, valid, np.clip(coarse, h_max, length - 1 - h_max), window, ws, None, rows)

@@ -173,11 +173,11 @@ def prior_band_verdicts(bands: Bands, runs: BrightestRuns, plans: list[BandPlan]
     Every ``SAMPLE_STRIDE``-th section is looked at (a few hundred per stripe, as many as the
     ±search_px search samples): their brightest pixels place the line to a few hundredths of a pixel.
     """
-    sizes = tuple(int(n) for n in np.diff(bands.starts))
+    sizes = tuple((bands.starts[1:] - bands.starts[:-1]).tolist())
     sampled, sample_starts = segments(ws, sizes)[-2:]
-    counts = np.diff(sample_starts)
+    counts = sample_starts[1:] - sample_starts[:-1]
     first = sample_starts[:-1]
-    stripe = np.repeat(np.arange(len(sizes)), counts)
+    stripe = np.arange(len(sizes)).repeat(counts)
     middle_along = np.array([0.5 * (p.along[0] + p.along[-1]) for p in plans])
     u = np.concatenate([p.along[::SAMPLE_STRIDE] for p in plans]) - middle_along[stripe]
     middle = runs.middle[sampled]
