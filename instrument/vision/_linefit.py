@@ -134,9 +134,9 @@ def bisquare_line(independent, dependent, *, tuning=BISQUARE_TUNING, tol=1e-7, m
     np.multiply(u, u, out=moments[3])
     np.multiply(u, v, out=moments[4])
     a, b = _line_from_sums(*np.add.reduce(moments, axis=1))
-    weights = np.ones_like(u)
-    residual = np.empty_like(u)
-    magnitude = np.empty_like(u)
+    weights = np.ones(len(u))
+    residual = np.empty(len(u))
+    magnitude = np.empty(len(u))
     scale_floor = 1e-12 * (1.0 + np.maximum.reduce(np.abs(v)))
     iterations, converged = 0, False
     for iterations in range(1, max_iter + 1):  # noqa: B007 (the count is returned)

@@ -189,7 +189,7 @@ def prior_band_verdicts(bands: Bands, runs: BrightestRuns, plans: list[BandPlan]
     a, b = _lines_per_stripe(first, u, offset, standing)
     inliers = standing & (np.abs(offset - (a[stripe] + b[stripe] * u)) <= INLIER_PX)
     n_inliers = np.add.reduceat(inliers, first)
-    if np.any(n_inliers < found):  # refit without the stray peaks (hot pixels, a reflection)
+    if np.logical_or.reduce(n_inliers < found):  # refit without the stray peaks (hot pixels, a reflection)
         a, b = _lines_per_stripe(first, u, offset, inliers)
     verdicts: list[bool | CoarseLine] = []
     for j, line in enumerate(lines):
