@@ -289,7 +289,8 @@ def _stripe_line(fit: StripeFit, vertical: bool) -> StripeLine:
     used = int(np.add.reduce(line.weights != 0))
     mean = float(line.weights @ fit.along / np.add.reduce(line.weights))
     dependent = line.intercept + line.slope * mean
-    direction = np.array([line.slope, 1.0] if vertical else [1.0, line.slope]) / np.hypot(1.0, line.slope)
+    norm = math.hypot(1.0, line.slope)
+    direction = np.array([line.slope / norm, 1.0 / norm] if vertical else [1.0 / norm, line.slope / norm])
     point = np.array([dependent, mean] if vertical else [mean, dependent])
     return StripeLine(point, direction, used, line.residual_rms, fit.saturated)
 

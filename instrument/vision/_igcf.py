@@ -179,8 +179,9 @@ def igcf_band(band, valid, background, saturation, half_window, min_amplitude, w
     fresh one if None); ``runs`` the band's :func:`brightest_runs` if already known; ``by_section``
     the band's transpose (N, L) C-contiguous, if at hand (the windows are then read from its rows,
     which is cheaper than gathering from the band's columns). Element-wise
-    work is done in float32 on the 2h+1-row window only; the moment sums and the 3×3 solution in
-    float64.
+    work is done in float32 on the 2h+1-row window only, the moment sums and the 3×3 solution too
+    (the weights are normalised to the section's peak, so the sums are O(1–100) and the solution's
+    rounding, ~1e-7 of the offset, is far below the centre's noise).
     """
     ws = VisionWorkspace() if workspace is None else workspace
     length, n = band.shape
@@ -231,10 +232,12 @@ def igcf_band(band, valid, background, saturation, half_window, min_amplitude, w
     else:
         sums, n_used = _window_sums(band, valid, np.clip(coarse, h_max, length - 1 - h_max), window, ws, None, rows)
         redo = np.flatnonzero(near_end)
-        sums[:, redo], n_used[redo] = _window_sums(
+        redone, n_used[redo] = _window_sums(
             np.ascontiguousarray(band[:, redo]), None if valid is None else np.ascontiguousarray(valid[:, redo]),
             coarse[redo], window.subset(redo), VisionWorkspace(), length, None,
         )
+        for row, value in zip(sums, redone):
+            row[redo] = value
     s0, s1, s2, s3, s4, z0, z1, z2 = sums
     # Cramer's rule on the 3×3 normal equations; centre = −a1/(2·a2) needs only det1 and det2 (the
     # determinant itself is positive: a weighted Gram matrix of ≥ 3 distinct points)
@@ -270,7 +273,7 @@ class _Window(NamedTuple):
 
 
 def _window_sums(band, valid, coarse, window: _Window, ws, profile_length, by_section):
-    """Moment sums (8, N) float64 — Σw·tᵖ for p = 0…4 and Σw·ln I·tᵖ for p = 0…2, w = I² — and the
+    """Moment sums (8 rows of N, float32) — Σw·tᵖ for p = 0…4 and Σw·ln I·tᵖ for p = 0…2, w = I² — and the
     pixels used per section, over each section's window around ``coarse``.
 
     ``profile_length`` None: every window lies inside the profile; else the rows off it are masked.
@@ -320,10 +323,7 @@ def _window_sums(band, valid, coarse, window: _Window, ws, profile_length, by_se
     np.log(level, out=weighted_log)
     weighted_log *= weight
     sums32 = np.matmul(_powers(window.h_max), sums_input, out=ws.array("igcf.sums32", (5, 2 * n), np.float32))
-    sums = ws.array("igcf.sums", (8, n), float)
-    np.copyto(sums[:5], sums32[:, :n])
-    np.copyto(sums[5:], sums32[:3, n:])
-    return sums, n_used
+    return [*sums32[:, :n], *sums32[:3, n:]], n_used
 
 
 def stripe_fwhm(band, background, saturation=None, stride=8):
