@@ -134,7 +134,7 @@ def _brightest_runs(band, workspace):
     rows = _row_indices(length)
     indices = np.multiply(at_peak, rows, out=workspace.array("igcf.indices", band.shape, rows.dtype))
     index_sum = np.add.reduce(indices, axis=0, dtype=np.uint16 if length <= 362 else np.uint32)
-    count_f = count.astype(float)
+    count_f = count.astype(np.float32)  # small integers and their ratios: float32 is exact enough
     return peak, index_sum / count_f, count_f
 
 
@@ -150,6 +150,7 @@ def _row_indices(length: int) -> np.ndarray:
     return rows
 
 
+TINY = np.finfo(float).tiny  # a peak must stand above the background, however little
 LOG_FLOOR = np.float32(1e-10)  # pixels left out of a fit sit here: weight 1e-20, weight·ln ≈ −2e-19 (nil)
 
 
@@ -193,7 +194,7 @@ def igcf_band(band, valid, background, saturation, half_window, min_amplitude, w
     amplitude = peak_raw - bg
     # coarse centre: the middle of the brightest run (the saturated plateau, or the peak pixel)
     coarse = middle.astype(np.intp)  # floor: middle ≥ 0
-    half_step = (middle - coarse) > 0.25  # an even run: its middle lies between two pixels
+    half_step = (middle - np.floor(middle)) > 0.25  # an even run: its middle lies between two pixels
     half_run = 0.5 * (run - 1)
     first = np.rint(middle - half_run)
     last = np.rint(middle + half_run)
@@ -247,7 +248,7 @@ def igcf_band(band, valid, background, saturation, half_window, min_amplitude, w
     fittable = (n_used >= 3) & (det2 < 0)  # det2/det = a2 < 0: a peak, not a dip
     offset = det1 / (-2.0 * np.where(fittable, det2, -1.0))
     ok = contained & fittable & (np.abs(offset) <= h_sec + 0.5)
-    ok &= amplitude >= np.maximum(min_amplitude, np.finfo(float).tiny)
+    ok &= amplitude >= np.maximum(min_amplitude, TINY)
     center = np.where(ok, coarse + offset, np.nan)
     saturated = np.zeros(n, bool) if plateau is None else plateau & ok
     return SectionCentres(center, ok, saturated, amplitude, run.astype(np.intp))
