@@ -105,6 +105,8 @@ def _kept_sections(n_sections: int, across_len: int, line: CoarseLine, other: Co
         """The s where ``test`` turns from False to True, within a few sections of ``guess``."""
         if not abs(guess) < 1e15:  # NaN, infinite or absurd lines: let the elementwise test decide
             return None
+        if not -4 < guess < n_sections + 4:  # far off the sections: rounding cannot move it among them
+            return math.floor(guess)
         s = math.floor(guess) + 1  # the turn is usually between floor(guess) and floor(guess) + 1
         for _ in range(6):
             before, here = test(s - 1), test(s)
