@@ -163,6 +163,7 @@ class Bands(NamedTuple):
     starts: np.ndarray  # (stripes + 1,) column bounds
     background: np.ndarray  # (N,) local background per section
     noise: np.ndarray  # (stripes,) noise σ per stripe
+    segments: Segments  # the layout's index arrays
 
 
 class Segments(NamedTuple):
@@ -174,6 +175,8 @@ class Segments(NamedTuple):
     edge_count: np.ndarray  # (N,) edge pixels in that window when all exist
     sampled: np.ndarray  # every SAMPLE_STRIDE-th section of each stripe
     sample_starts: np.ndarray  # (stripes + 1,) where each stripe's samples start in ``sampled``
+    sample_counts: np.ndarray  # (stripes,) samples per stripe
+    sample_stripe: np.ndarray  # (samples,) the stripe of each sample
 
 
 def segments(ws: VisionWorkspace, sizes: tuple[int, ...]) -> Segments:
@@ -188,8 +191,10 @@ def segments(ws: VisionWorkspace, sizes: tuple[int, ...]) -> Segments:
         half = BACKGROUND_SPAN // 2
         low, high = np.maximum(i - half, stripe_start), np.minimum(i + half, stripe_last)
         sampled = np.concatenate([np.arange(lo, hi, SAMPLE_STRIDE) for lo, hi in zip(starts[:-1], starts[1:])])
-        sample_starts = np.concatenate([[0], np.cumsum([-(-n // SAMPLE_STRIDE) for n in sizes])])
-        return Segments(starts, low, high + 1, (high + 1 - low) * float(len(EDGE_ROWS)), sampled, sample_starts)
+        sample_counts = np.array([-(-n // SAMPLE_STRIDE) for n in sizes])
+        sample_starts = np.concatenate([[0], np.cumsum(sample_counts)])
+        return Segments(starts, low, high + 1, (high + 1 - low) * float(len(EDGE_ROWS)), sampled, sample_starts,
+                        sample_counts, np.repeat(np.arange(len(sizes)), sample_counts))
 
     return ws.cached(("segments", sizes), make)
 
@@ -201,7 +206,8 @@ def extract_bands(jobs_plans, ws: VisionWorkspace, fallback_bgs) -> Bands:
     background per band (used where a band has too few background pixels in the frame).
     """
     sizes = tuple(len(plan.along) for _, _, plan in jobs_plans)
-    starts, window_low, window_end, edge_count, sampled, sample_starts = segments(ws, sizes)
+    layout = segments(ws, sizes)
+    starts, window_low, window_end, edge_count, sampled, sample_starts = layout[:6]
     n = int(starts[-1])
     dtype = np.result_type(*(flat.dtype for flat, _, _ in jobs_plans))
     by_section = ws.array("bands.by_section", (n, BAND_WIDTH), dtype)
@@ -234,7 +240,7 @@ def extract_bands(jobs_plans, ws: VisionWorkspace, fallback_bgs) -> Bands:
     squares = residual * residual
     if edge_weight is None:
         square_sum = np.add.reduceat(np.add.reduce(squares, axis=0), sample_starts[:-1])
-        pixels = (sample_starts[1:] - sample_starts[:-1]) * float(len(EDGE_ROWS))
+        pixels = layout.sample_counts * float(len(EDGE_ROWS))
     else:
         weight = edge_weight[:, sampled]
         square_sum = np.add.reduceat((squares * weight).sum(axis=0), sample_starts[:-1])
@@ -245,26 +251,25 @@ def extract_bands(jobs_plans, ws: VisionWorkspace, fallback_bgs) -> Bands:
         for j in np.flatnonzero(in_frame < MIN_EDGE_PIXELS):
             background[starts[j] : starts[j + 1]] = fallback_bgs[j]
             noise[j] = 0.5
-    return Bands(values, by_section, valid, starts, background, noise)
+    return Bands(values, by_section, valid, starts, background, noise, layout)
 
 
 def half_windows(bands: Bands, levels, ws: VisionWorkspace) -> np.ndarray:
     """IGCF half-window per stripe from its width at half maximum (``igcf.half_window_for_width``):
     the median over every SAMPLE_STRIDE-th section, saturated sections left out."""
-    sizes = tuple((bands.starts[1:] - bands.starts[:-1]).tolist())
-    sampled, sample_starts = segments(ws, sizes)[-2:]
+    layout = bands.segments
+    sampled, n_stripes = layout.sampled, len(layout.sample_counts)
     sub = cv2.transpose(bands.by_section[sampled])  # (BAND_WIDTH, samples): whole rows read, not columns
     background = bands.background[sampled]
     peak = np.maximum.reduce(sub, axis=0)
     half = np.ceil(0.5 * (background + peak)).astype(sub.dtype)  # x ≥ h ⟺ x ≥ ⌈h⌉ for integers
     widths = np.add.reduce(sub >= half[None, :], axis=0)
-    samples = sample_starts[1:] - sample_starts[:-1]
-    stripe = np.arange(len(sizes)).repeat(samples)
-    usable = (peak > background) & (peak < levels.repeat(samples))
+    stripe = layout.sample_stripe
+    usable = (peak > background) & (peak < levels[stripe])
     # median width per stripe from a histogram of the (small, integer) widths
     bins = BAND_WIDTH + 1
-    histogram = np.bincount(stripe[usable] * bins + widths[usable], minlength=len(sizes) * bins)
-    cumulative = histogram.reshape(len(sizes), bins).cumsum(axis=1)
+    histogram = np.bincount(stripe[usable] * bins + widths[usable], minlength=n_stripes * bins)
+    cumulative = histogram.reshape(n_stripes, bins).cumsum(axis=1)
     count = cumulative[:, -1]
 
     def order_statistic(k):  # the k-th smallest width of each stripe (0-based)

@@ -71,19 +71,19 @@ def measure_crosses(jobs, half_window, min_sections,
         if not check_priors:
             break
         check_priors = False  # bands laid again after the check are measured as they are
-        if not _follow_priors(planned, bands, runs, lines, results, ws):
+        if not _follow_priors(planned, bands, runs, lines, results):
             break
     return _finish(planned, bands, runs, results, half_window, min_sections, ws, len(jobs))
 
 
-def _follow_priors(planned, bands, runs, lines, results, ws) -> bool:
+def _follow_priors(planned, bands, runs, lines, results) -> bool:
     """Check each tracked frame's bands; update ``lines`` (or ``results`` with ``PriorLost``) where a
     band must be laid again. Returns whether any was."""
     tracked = [(k, number, job) for k, (number, job, _) in enumerate(planned) if job.search == "tracked"]
     if not tracked:
         return False
     verdicts = prior_band_verdicts(bands, runs, [p for _, _, plans in planned for p in plans],
-                                   [line for number, _, _ in planned for line in lines[number]], ws)
+                                   [line for number, _, _ in planned for line in lines[number]])
     again = False
     for k, number, job in tracked:
         new: list[CoarseLine] = list(lines[number])

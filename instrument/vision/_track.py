@@ -35,7 +35,7 @@ import math
 
 import numpy as np
 
-from instrument.vision._bands import BAND_HALF_WIDTH, SAMPLE_STRIDE, BandPlan, Bands, kind, segments
+from instrument.vision._bands import BAND_HALF_WIDTH, SAMPLE_STRIDE, BandPlan, Bands, kind
 from instrument.vision._detect import CoarseLine
 from instrument.vision._igcf import BrightestRuns
 from instrument.vision._linefit import _median
@@ -163,7 +163,7 @@ def reacquire_stripe(flat, shape, line: CoarseLine, other: CoarseLine, search: i
     return found if isinstance(found, str) else found[0]
 
 
-def prior_band_verdicts(bands: Bands, runs: BrightestRuns, plans: list[BandPlan], lines: list[CoarseLine], ws):
+def prior_band_verdicts(bands: Bands, runs: BrightestRuns, plans: list[BandPlan], lines: list[CoarseLine]):
     """Whether each band, laid around its stripe's prior line, holds the stripe.
 
     Per stripe: True — the brightest pixels of its sections lie on one line within
@@ -173,16 +173,14 @@ def prior_band_verdicts(bands: Bands, runs: BrightestRuns, plans: list[BandPlan]
     Every ``SAMPLE_STRIDE``-th section is looked at (a few hundred per stripe, as many as the
     ±search_px search samples): their brightest pixels place the line to a few hundredths of a pixel.
     """
-    sizes = tuple((bands.starts[1:] - bands.starts[:-1]).tolist())
-    sampled, sample_starts = segments(ws, sizes)[-2:]
-    counts = sample_starts[1:] - sample_starts[:-1]
-    first = sample_starts[:-1]
-    stripe = np.arange(len(sizes)).repeat(counts)
+    layout = bands.segments
+    sampled, counts, stripe = layout.sampled, layout.sample_counts, layout.sample_stripe
+    first = layout.sample_starts[:-1]
     middle_along = np.array([0.5 * (p.along[0] + p.along[-1]) for p in plans])
     u = np.concatenate([p.along[::SAMPLE_STRIDE] for p in plans]) - middle_along[stripe]
     middle = runs.middle[sampled]
     # the run's middle across the stripe, from the prior line (base + BAND_HALF_WIDTH is its rounding)
-    offset = middle + np.concatenate([(p.base - p.position)[::SAMPLE_STRIDE] for p in plans])
+    offset = middle + np.concatenate([p.base[::SAMPLE_STRIDE] - p.position[::SAMPLE_STRIDE] for p in plans])
     standing = runs.peak[sampled] - bands.background[sampled] >= MIN_PEAK_SIGMAS * bands.noise[stripe]
     standing &= np.abs(middle - BAND_HALF_WIDTH) <= BAND_HALF_WIDTH - EDGE_MARGIN
     found = np.add.reduceat(standing, first)
