@@ -345,8 +345,8 @@ def cross(h_fit: StripeFit, v_fit: StripeFit, search: str) -> CrossMeasurement:
     a_v, b_v = v_fit.line.intercept, v_fit.line.slope  # x = a_v + b_v·y
     x = (a_v + b_v * a_h) / (1.0 - b_v * b_h)
     center = np.array([x, a_h + b_h * x])
-    phi_h = float(np.arctan(b_h))  # atan2(dy, dx) with d = (1, b_h) toward +x
-    phi_v = float(-np.arctan(b_v))  # atan2(−dx, dy) with d = (b_v, 1) toward +y
+    phi_h = math.atan(b_h)  # atan2(dy, dx) with d = (1, b_h) toward +x
+    phi_v = -math.atan(b_v)  # atan2(−dx, dy) with d = (b_v, 1) toward +y
     return CrossMeasurement(
         center=center,
         angle=0.5 * (phi_h + phi_v),

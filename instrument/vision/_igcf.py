@@ -240,13 +240,15 @@ def igcf_band(band, valid, background, saturation, half_window, min_amplitude, w
         for row, value in zip(sums, redone):
             row[redo] = value
     s0, s1, s2, s3, s4, z0, z1, z2 = sums
-    # Cramer's rule on the 3×3 normal equations; centre = −a1/(2·a2) needs only det1 and det2 (the
-    # determinant itself is positive: a weighted Gram matrix of ≥ 3 distinct points)
-    m2, m3, mz = s1 * s4 - s3 * s2, s1 * s3 - s2 * s2, s1 * z2 - z1 * s2  # shared minors
-    det1 = s0 * (z1 * s4 - s3 * z2) - z0 * m2 + s2 * mz
-    det2 = s0 * (s2 * z2 - z1 * s3) - s1 * mz + z0 * m3
-    fittable = (n_used >= 3) & (det2 < 0)  # det2/det = a2 < 0: a peak, not a dip
-    offset = det1 / (-2.0 * np.where(fittable, det2, -1.0))
+    # the 3×3 normal equations with a0 eliminated by the first one (each row times s0):
+    # A·a1 + B·a2 = P, B·a1 + C·a2 = Q; centre = −a1/(2·a2) needs only the two numerators of
+    # Cramer's rule (the determinant A·C − B² is positive: a weighted Gram matrix of ≥ 3 points)
+    a, b, c = s0 * s2 - s1 * s1, s0 * s3 - s1 * s2, s0 * s4 - s2 * s2
+    p, q = s0 * z1 - s1 * z0, s0 * z2 - s2 * z0
+    a1 = p * c - b * q  # a1 and a2 times the positive determinant A·C − B² (= s0 × that of the 3×3)
+    a2 = a * q - b * p
+    fittable = (n_used >= 3) & (a2 < 0)  # a2 < 0: a peak, not a dip
+    offset = a1 / (-2.0 * np.where(fittable, a2, -1.0))
     ok = contained & fittable & (np.abs(offset) <= h_sec + 0.5)
     ok &= amplitude >= np.maximum(min_amplitude, TINY)
     center = np.where(ok, coarse + offset, np.nan)
