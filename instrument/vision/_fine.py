@@ -14,7 +14,6 @@ import numpy as np
 
 from instrument.vision._bands import (
     MIN_AMPLITUDE_SIGMAS,
-    CrossJob,
     StripeFit,
     cross,
     extract_bands,
@@ -132,18 +131,3 @@ def _finish(planned, bands, runs, results, half_window, min_sections, ws, n_jobs
                         for along, centre, saturated, peak in pair)
         results[number] = cross(h_fit, v_fit, job.search)
     return [results[number] for number in range(n_jobs)]
-
-
-def measure_cross(flat, shape, horizontal: CoarseLine, vertical: CoarseLine, fallback_bg: float, saturation: float,
-                  half_window, min_sections: int, search: str = "full", workspace=None) -> CrossMeasurement:
-    """The sub-pixel cross of one frame from two coarse lines good to about a pixel.
-
-    ``flat`` is the C-contiguous frame raveled; raises ``CrossNotFound`` when a stripe has too few
-    usable sections.
-    """
-    job = CrossJob(flat, shape, horizontal, vertical, fallback_bg, saturation, search)
-    (result,) = measure_crosses([job], half_window, min_sections, workspace)
-    if isinstance(result, CrossNotFound):
-        raise result
-    assert isinstance(result, CrossMeasurement)  # not tracked: no prior to lose
-    return result
