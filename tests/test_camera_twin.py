@@ -36,7 +36,7 @@ def test_file_twin_writes_the_settled_pose_before_the_setter_returns(world, benc
         state = world.set_flange_pose(_moved(world, [0.01, 0.02, 0.0]))
         for name, path in twin.paths.items():
             on_disk = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-            expected = twin.renderer.render(name, state.opr_in_m, seq=state.seq)
+            expected = twin.renderer.render(name, state.opr_in_m, seq=twin.frames_written)
             np.testing.assert_array_equal(on_disk, expected)
         frames = world.truth.entries("frames")
         assert frames[-1]["seq"] == state.seq

@@ -25,6 +25,7 @@ from sim_devices.ur._servers import (
     DashboardHandler,
     InputOwnership,
     RTDEHandler,
+    RTDEStreams,
     ScriptHandler,
     TcpServer,
 )
@@ -60,8 +61,10 @@ class URControllerTwin:
         ports = {"rtde": RTDE_PORT, "dashboard": DASHBOARD_PORT, "script": SCRIPT_PORT, **dict(ports or {})}
         self.controller = URController(world, self.config, self.faults, on_disconnect=self.drop_connections)
         self.script_handler = ScriptHandler(self.controller)
+        self.streams = RTDEStreams(self.controller)
         self.servers = {
-            "rtde": TcpServer(host, ports["rtde"], RTDEHandler(self.controller, InputOwnership()), "rtde"),
+            "rtde": TcpServer(host, ports["rtde"], RTDEHandler(self.controller, InputOwnership(), self.streams),
+                              "rtde"),
             "dashboard": TcpServer(host, ports["dashboard"], DashboardHandler(self.controller), "dashboard"),
             "script": TcpServer(host, ports["script"], ScriptHandler(self.controller), "script"),
         }
