@@ -31,7 +31,7 @@ During a move ``actual`` follows ``target`` through the joint servos (``_servo.p
 residual is below ``settle_tolerance`` (``actual`` is then exactly ``target``). Then, off the
 cycle thread, the attained flange pose goes to the world with ``settled=True`` (which returns once
 every subscriber, in any process of the cell, has seen it), and only then, at least two cycles
-after the final pose was first streamed, the script is told the move is done. So a client told
+after the final pose was first streamed (``DONE_AFTER_CYCLES``), the script is told the move is done. So a client told
 "done" reads the final pose on any RTDE connection and every twin has seen the attained pose.
 When a move is planned, its attained flange pose is announced to the world (``World.announce``),
 so the camera twin can render the final frames while the arm is still moving.
@@ -72,7 +72,7 @@ JOINT_RUNNING_MODE = 253
 MID_MOVE_FAULTS = (FaultKind.PROTECTIVE_STOP, FaultKind.EMERGENCY_STOP, FaultKind.PROGRAM_STOPPED,
                    FaultKind.DISCONNECT)
 MAX_CATCH_UP = 25  # slots a late cycle thread makes up for (50 ms); beyond that it resynchronises
-DONE_AFTER_CYCLES = 2  # "done" goes out this many cycles after the final pose was first streamed
+DONE_AFTER_CYCLES = 5  # "done" goes out this many cycles (10 ms) after the final pose was first streamed
 
 # A coarse UR5e mass model for the joint currents: link masses (kg) at the middle of each link,
 # torque constants (N·m/A, gear included) and reflected inertias (kg·m²) per joint.
@@ -525,6 +525,7 @@ class URController:
                 "tcp_offset": run.tcp_offset.tolist(),
                 "stopped": motion.stopped,
                 "settling_time": run.settled_at - motion.t_end,
+                "end_timestamp": run.end_cycle * self.period,  # RTDE timestamp of the first package at rest
             })
             del self.visits[:-10_000]
         # The final pose has been streamed since ``end_cycle``; give every client a cycle or two to

@@ -148,6 +148,8 @@ class RTDEConnection:
         self.decimation = 1
         self.started = False
         self.dead = False
+        self.packages = 0  # data packages handed to the socket (or its queue)
+        self.backlog_peak = 0  # most bytes ever waiting for a client that reads too slowly
         self._pending = b""
 
     def reply(self, kind: int, payload: bytes) -> None:
@@ -164,6 +166,7 @@ class RTDEConnection:
                 fields = state.fields
                 payload = self.output.pack([get(fields) for get in self.getters])
                 self._write(struct.pack(">HB", len(payload) + 3, U) + payload)
+                self.packages += 1
             elif self._pending:
                 self._write(b"")
 
@@ -177,6 +180,7 @@ class RTDEConnection:
             self._drop()
             return
         self._pending = self._pending[sent:]
+        self.backlog_peak = max(self.backlog_peak, len(self._pending))
         if len(self._pending) > self.MAX_PENDING:
             self._drop()
 
@@ -206,6 +210,11 @@ class RTDEStreams:
     def remove(self, connection: RTDEConnection) -> None:
         with self._lock:
             self._connections = [c for c in self._connections if c is not connection]
+
+    def stats(self) -> list[dict[str, int]]:
+        """Per connection: data packages sent and the peak backlog (bytes a slow reader left queued)."""
+        return [{"packages": c.packages, "backlog_peak": c.backlog_peak, "started": int(c.started)}
+                for c in self._connections]
 
     def on_cycle(self, state: CycleState) -> None:
         c = self.c
