@@ -233,13 +233,11 @@ class TwinProcess:
         """A file descriptor that becomes ready when the child ends (``multiprocessing.connection.wait``)."""
         return None if self._process is None else self._process.sentinel
 
-    def poll_exit(self) -> int | None:
-        """The child's exit code if it has ended (it is reaped), else None."""
+    def poll_exit(self, timeout: float = 0.0) -> int | None:
+        """The child's exit code if it has ended within ``timeout`` s (it is then reaped), else None."""
         if self._process is None:
             return self.exitcode
-        if self._process.is_alive():
-            return None
-        self._process.join(0)
+        self._process.join(timeout)
         self.exitcode = self._process.exitcode
         return self.exitcode
 

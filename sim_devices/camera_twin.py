@@ -45,13 +45,13 @@ def write_bmp_atomically(path: Path, image: np.ndarray) -> None:
 
 @dataclass
 class _AheadFrames:
-    """Frames rendered ahead of time for an announced pose, waiting in hidden files."""
+    """The frames of an announced pose, rendered ahead of time into hidden files."""
 
     index: int  # the frame set they are numbered (and seeded) as
     opr_in_m: np.ndarray
     scale: float
     paths: dict[str, Path]
-    done: bool = False
+    state: str = "wanted"  # wanted → rendering → done; "taken" when the settled state came first; "failed"
 
 
 class CameraFileTwin:
@@ -85,13 +85,14 @@ class CameraFileTwin:
         self.laser_on = True
         self.exposure_scale = 1.0
         self.frames_written = 0
-        self.rendered_ahead = 0  # frame sets that came from an announcement (for tests and stats)
+        self.announced = 0  # frame sets whose pose had been announced (matched its announcement)
+        self.rendered_ahead = 0  # ... of which the rendering had started before the settled state came
         self._subscribed = False
         self._lock = threading.Lock()  # one frame set at a time is put in place
         self._render_lock = threading.Lock()  # the renderer's caches are not shared between threads
         self._ahead = threading.Condition()
-        self._wanted: np.ndarray | None = None
-        self._ahead_frames: _AheadFrames | None = None
+        self._ahead_frames: _AheadFrames | None = None  # the latest announcement's
+        self._announcements = 0
         self._worker: threading.Thread | None = None
         self._stopping = False
         self._last_state: WorldState | None = None
@@ -122,8 +123,7 @@ class CameraFileTwin:
             self._worker = None
         with self._ahead:
             if self._ahead_frames is not None:
-                for path in self._ahead_frames.paths.values():
-                    path.unlink(missing_ok=True)
+                _remove(self._ahead_frames)
                 self._ahead_frames = None
 
     def set_laser(self, on: bool) -> dict[str, int]:
@@ -145,8 +145,10 @@ class CameraFileTwin:
         return {name: str(path) for name, path in self.paths.items()}
 
     def stats(self) -> dict[str, int]:
-        """Frame sets written, and how many of them were rendered ahead of the settled state."""
-        return {"frames_written": self.frames_written, "rendered_ahead": self.rendered_ahead}
+        """Frame sets written, how many had been announced, and how many of those were (being) rendered
+        before their settled state came."""
+        return {"frames_written": self.frames_written, "announced": self.announced,
+                "rendered_ahead": self.rendered_ahead}
 
     def control(self, command: str, /, **kwargs: Any) -> Any:
         """``laser`` (on: bool), ``exposure`` (scale: float), ``render`` (re-render now), ``files``, ``stats``."""
@@ -159,51 +161,60 @@ class CameraFileTwin:
         return self.exposure_scale if self.laser_on else 0.0
 
     def _on_announce(self, expected: WorldState) -> None:
-        """A pose is expected to settle next: render it ahead (on the worker; returns at once)."""
+        """A pose is expected to settle next: queue its frames for the worker (returns at once)."""
         with self._ahead:
-            self._wanted = expected.opr_in_m.copy()
+            previous = self._ahead_frames
+            if previous is not None and previous.state in ("wanted", "done"):
+                _remove(previous)  # superseded (one being rendered is removed by the worker)
+            self._announcements += 1
+            self._ahead_frames = _AheadFrames(
+                self.frames_written + 1, expected.opr_in_m.copy(), self._scale(),
+                {name: self.directory / f".{name}.ahead-{self._announcements}.bmp" for name in AXIS_NAMES})
             self._ahead.notify_all()
 
     def _render_ahead_loop(self) -> None:
         while True:
             with self._ahead:
-                while self._wanted is None and not self._stopping:
+                while not self._stopping and (self._ahead_frames is None or self._ahead_frames.state != "wanted"):
                     self._ahead.wait()
                 if self._stopping:
                     return
-                opr_in_m, self._wanted = self._wanted, None
-                assert opr_in_m is not None
-                # A newer announcement replaces the frames of an older one (same hidden files).
-                frames = self._ahead_frames = _AheadFrames(
-                    self.frames_written + 1, opr_in_m, self._scale(),
-                    {name: self.directory / f".{name}.ahead.bmp" for name in AXIS_NAMES})
+                frames = self._ahead_frames
+                assert frames is not None
+                frames.state = "rendering"
             try:
                 with self._render_lock:
                     for name, path in frames.paths.items():
-                        image = self.renderer.render(name, opr_in_m, seq=frames.index, exposure_scale=frames.scale)
+                        image = self.renderer.render(name, frames.opr_in_m, seq=frames.index,
+                                                     exposure_scale=frames.scale)
                         write_bmp_atomically(path, image)
+                outcome = "done"
             except Exception:  # rendering ahead is an optimisation: the settled state renders anyway
-                with self._ahead:
-                    if self._ahead_frames is frames:
-                        self._ahead_frames = None
-                    self._ahead.notify_all()
-                continue
+                outcome = "failed"
             with self._ahead:
-                frames.done = True
+                frames.state = outcome
+                if self._ahead_frames is not frames or outcome == "failed":
+                    _remove(frames)  # superseded meanwhile
                 self._ahead.notify_all()
 
-    def _take_ahead(self, index: int, opr_in_m: np.ndarray, scale: float) -> _AheadFrames | None:
-        """The frames rendered ahead for exactly this frame set, waiting for them if under way."""
+    def _take_ahead(self, index: int, opr_in_m: np.ndarray, scale: float) -> tuple[bool, _AheadFrames | None]:
+        """Whether this frame set was announced, and its frames if they were rendered ahead (waiting for
+        them if under way; one not started yet is taken over: rendered here, now, at the same cost)."""
         with self._ahead:
-            while True:
-                frames = self._ahead_frames
-                if frames is None or frames.index != index or frames.scale != scale or not np.array_equal(
-                        frames.opr_in_m, opr_in_m):
-                    return None
-                if frames.done:
-                    self._ahead_frames = None
-                    return frames
+            frames = self._ahead_frames
+            # The same pose, computed in another process (the BLAS kernel may round the last bit
+            # differently): 1e-12 m or rad is far below anything a pixel can show.
+            if frames is None or frames.index != index or frames.scale != scale or not np.allclose(
+                    frames.opr_in_m, opr_in_m, rtol=0.0, atol=1e-12):
+                return False, None
+            if frames.state == "wanted":
+                frames.state = "taken"
+                self._ahead_frames = None
+                return True, None
+            while frames.state == "rendering":
                 self._ahead.wait(1.0)
+            self._ahead_frames = None
+            return True, frames if frames.state == "done" else None
 
     def _on_state(self, state: WorldState, force: bool = False) -> None:
         if not state.settled and not force:
@@ -211,7 +222,7 @@ class CameraFileTwin:
         with self._lock:
             index = self.frames_written + 1
             scale = self._scale()
-            ahead = self._take_ahead(index, state.opr_in_m, scale)
+            announced, ahead = self._take_ahead(index, state.opr_in_m, scale)
             files = {}
             for name in AXIS_NAMES:
                 if ahead is not None:
@@ -222,12 +233,18 @@ class CameraFileTwin:
                     write_bmp_atomically(self.paths[name], image)
                 files[name] = str(self.paths[name])
             self.frames_written = index
+            self.announced += announced
             self.rendered_ahead += ahead is not None
             self._last_state = state
             self.world.truth.record(
                 "frames", seq=state.seq, index=index, time=self.world.clock(), files=files,
                 opr_in_m=pose_record(state.opr_in_m), laser_on=self.laser_on, rendered_ahead=ahead is not None,
             )
+
+
+def _remove(frames: _AheadFrames) -> None:
+    for path in frames.paths.values():
+        path.unlink(missing_ok=True)
 
 
 class SimCamera:

@@ -346,7 +346,7 @@ class CellHost:
 
     def _report_death(self, handle: TwinHandle) -> None:
         pid = handle.pid
-        code = handle.process.poll_exit()
+        code = handle.process.poll_exit(timeout=2.0)  # its pipe closes a moment before it can be reaped
         handle.died = -1 if code is None else code
         world = self._world
         if world is not None and world.channel is not None and pid is not None:
