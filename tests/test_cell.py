@@ -264,7 +264,7 @@ def test_a_twin_that_dies_is_reported_by_name_and_the_others_carry_on(tmp_path):
         assert cell.ping() == "pong"
         assert cell.mount_on_table("x") == "table:x"
         assert cell.forward("cameras", "stats")["frames_written"] >= 2
-        assert set(n for n, e in cell.status().items() if e["alive"]) == {"cameras", "rotary_table", "interferometer"}
+        assert {n for n, e in cell.status().items() if e["alive"]} == {"cameras", "rotary_table", "interferometer"}
 
 
 def test_instrument_sim_names_a_twin_that_died(tmp_path):

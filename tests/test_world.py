@@ -6,6 +6,7 @@ import time
 import numpy as np
 import pytest
 
+from sim_devices import TwinProcess
 from sim_devices._transforms import (
     euler_to_matrix,
     matrix_to_euler,
@@ -16,7 +17,6 @@ from sim_devices._transforms import (
     rot_z,
     rotvec_to_matrix,
 )
-from sim_devices import TwinProcess
 from sim_devices.world import World, WorldConfig
 
 
