@@ -8,7 +8,7 @@ the controller started) and simulated time ``k · period · time_scale`` (motion
 immutable ``CycleState`` (joints, poses, speeds, currents, modes, a copy of every register) and
 hands it to the RTDE streams, which pack each client's recipe from it. A late cycle does not skip
 its slot: the thread steps and sends every slot it missed, back to back (up to ``MAX_CATCH_UP``
-slots; a longer stall resynchronises and is counted in ``skipped_cycles``).
+slots, 0.5 s; a longer stall resynchronises and is counted in ``skipped_cycles``).
 
 What the controller reports and what is true
 --------------------------------------------
@@ -71,7 +71,7 @@ SAFETY_BIT_STOPPED_DUE_TO_SAFETY = 1 << 10
 JOINT_RUNNING_MODE = 253
 MID_MOVE_FAULTS = (FaultKind.PROTECTIVE_STOP, FaultKind.EMERGENCY_STOP, FaultKind.PROGRAM_STOPPED,
                    FaultKind.DISCONNECT)
-MAX_CATCH_UP = 25  # slots a late cycle thread makes up for (50 ms); beyond that it resynchronises
+MAX_CATCH_UP = 250  # slots a late cycle thread makes up for (0.5 s); beyond that it resynchronises
 DONE_AFTER_CYCLES = 5  # "done" goes out this many cycles (10 ms) after the final pose was first streamed
 
 # A coarse UR5e mass model for the joint currents: link masses (kg) at the middle of each link,
