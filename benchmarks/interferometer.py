@@ -7,9 +7,11 @@ driver (``CanInterferometer`` on python-can) reads both transports at once in th
     .venv/bin/python benchmarks/interferometer.py --duration 10 --transport slcan
 
 Latency is the driver's receive time minus the frame's timestamp: for socketcand that timestamp
-is the head's (the twin stamps each sample when it is due), so it covers the head's scheduling,
-TCP, python-can and the driver; slcan frames are stamped by python-can on the host when read, so
-there it only covers python-can → driver. Target: 1 kHz with no lost samples for 60 s.
+is the frame's receive time on the bus (the twin's real send time plus bus time and a kernel
+latency, as socketcand forwards the kernel's), so it covers TCP, python-can and the driver; slcan
+frames are stamped by python-can on the host when read, so there it only covers python-can →
+driver. Jitter is |Δt − 1 ms| between consecutive samples' timestamps (socketcand: the twin's send
+schedule as the bus saw it; slcan: python-can's read times). Target: 1 kHz with no lost samples for 60 s.
 """
 
 from __future__ import annotations
@@ -77,13 +79,15 @@ def run(duration: float, transports: list[str], seed: int) -> int:
             elapsed = time.monotonic() - started
             after = {name: device.stats() for name, device in devices.items()}
             twin_after = twin.call("stats")
+            period_hz = float(twin.call("endpoints")["layout"]["sample_rate"])
         finally:
             for device in devices.values():
                 device.close()
 
     print(f"interferometer feed, {duration:.0f} s, transports {', '.join(transports)} (twin in its own process)")
     header = (f"{'transport':<11} {'samples':>8} {'rate Hz':>8} {'lost':>5} {'gaps':>5} {'stalls':>6} "
-              f"{'proto err':>9} {'lat p50 ms':>10} {'lat p99 ms':>10} {'lat max ms':>10} {'intvl p99 ms':>12}")
+              f"{'proto err':>9} {'lat p50 ms':>10} {'lat p99 ms':>10} {'lat max ms':>10} {'intvl p99 ms':>12} "
+              f"{'jit p50 ms':>10} {'jit p99 ms':>10} {'jit max ms':>10}")
     print(header)
     print("-" * len(header))
     failed = False
@@ -96,9 +100,11 @@ def run(duration: float, transports: list[str], seed: int) -> int:
         latency = np.array(collector.latency) * 1e3
         clock = np.array(collector.stamps if name == "socketcand" else collector.arrivals)
         intervals = np.diff(clock) * 1e3 if count > 1 else np.array([np.nan])
+        jitter = np.abs(np.diff(collector.stamps) * 1e3 - 1e3 / period_hz) if count > 1 else np.array([np.nan])
         print(f"{name:<11} {count:>8} {rate:>8.1f} {delta['lost_samples']:>5} {delta['gaps']:>5} "
               f"{delta['stalls']:>6} {delta['protocol_errors']:>9} {np.percentile(latency, 50):>10.3f} "
-              f"{np.percentile(latency, 99):>10.3f} {latency.max():>10.3f} {np.percentile(intervals, 99):>12.3f}")
+              f"{np.percentile(latency, 99):>10.3f} {latency.max():>10.3f} {np.percentile(intervals, 99):>12.3f} "
+              f"{np.percentile(jitter, 50):>10.3f} {np.percentile(jitter, 99):>10.3f} {jitter.max():>10.3f}")
         if collector.error:
             print(f"  {name}: feed error: {collector.error}")
         for defect in collector.defects[:5]:
@@ -108,7 +114,8 @@ def run(duration: float, transports: list[str], seed: int) -> int:
     print(f"twin: {produced} samples produced in {elapsed:.1f} s ({produced / elapsed:.1f} Hz), "
           f"late-skipped {twin_after['late_skipped'] - twin_before['late_skipped']}, "
           f"slcan overflows {twin_after['slcan_overflows'] - twin_before['slcan_overflows']}")
-    print("interval column: device timestamps for socketcand, host arrival times for slcan")
+    print("interval column: frame timestamps for socketcand, host arrival times for slcan; "
+          "jitter: |Δ timestamp − period|")
     print("target (1 kHz, no lost samples):", "NOT MET" if failed else "met")
     return 1 if failed else 0
 

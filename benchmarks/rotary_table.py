@@ -2,7 +2,10 @@
 
 Run: ``.venv/bin/python benchmarks/rotary_table.py [--n 500]``. Each figure is one ``position()``
 call of the real driver over the real client library: Modbus TCP (through the fault proxy and
-direct to the server), Modbus RTU over a pty pair and the relay, GCS ``POS?`` over a pty pair.
+direct to the server), Modbus RTU over a pty pair and the relay, GCS ``POS?`` over a pty pair and
+over TCP (through the fault proxy and direct). The ``open`` column is the first ``open()`` of each
+adapter on a twin just powered on (servo on and the reference move) or, for later adapters on the
+same twin, finding it ready.
 """
 
 from __future__ import annotations
@@ -38,6 +41,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--n", type=int, default=500)
     args = parser.parse_args()
+    if args.n < 1:
+        parser.error("--n must be at least 1")
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     twin = RotaryTableTwin(World(), {})
     endpoints = twin.start()
@@ -55,12 +60,22 @@ def main() -> None:
             },
             "modbus_rtu (pty relay)": {"adapter": "modbus_rtu", "port": endpoints["modbus_rtu_port"]},
             "gcs_serial POS? (pty relay)": {"adapter": "gcs_serial", "port": endpoints["gcs_port"]},
+            "gcs_tcp POS? (fault proxy)": {"adapter": "gcs_tcp", "host": "127.0.0.1",
+                                           "port": endpoints["gcs_tcp_port"]},
+            "gcs_tcp POS? (direct)": {"adapter": "gcs_tcp", "host": "127.0.0.1",
+                                      "port": endpoints["gcs_tcp_direct_port"]},
         }
-        print(f"{'adapter':32s} {'median ms':>10s} {'p99 ms':>10s}   (n={args.n})")
+        print(f"{'adapter':32s} {'open ms':>10s} {'median ms':>10s} {'p99 ms':>10s}   (n={args.n})")
         for label, config in cases.items():
-            with create(config, name="bench") as table:
+            table = create(config, name="bench")
+            started = time.perf_counter()
+            table.open()
+            opened = (time.perf_counter() - started) * 1e3
+            try:
                 median, p99 = _measure(table, args.n)
-            print(f"{label:32s} {median:10.3f} {p99:10.3f}")
+            finally:
+                table.close()
+            print(f"{label:32s} {opened:10.1f} {median:10.3f} {p99:10.3f}")
     finally:
         twin.stop()
 

@@ -42,14 +42,14 @@ TARGETS = {
 }
 
 
-def time_per_image(img, batches, per_batch, saturation=None):
+def time_per_image(img, batches, per_batch, saturation=None, prior=None):
     """(best, median) CPU ms and best wall ms per call of locate_cross over ``batches`` batches."""
-    locate_cross(img, saturation)  # warm-up
+    locate_cross(img, saturation, prior)  # warm-up
     cpu, wall = [], []
     for _ in range(batches):
         c0, w0 = time.process_time(), time.perf_counter()
         for _ in range(per_batch):
-            locate_cross(img, saturation)
+            locate_cross(img, saturation, prior)
         cpu.append((time.process_time() - c0) / per_batch * 1e3)
         wall.append((time.perf_counter() - w0) / per_batch * 1e3)
     return min(cpu), float(np.median(cpu)), min(wall)
@@ -108,6 +108,12 @@ def main(argv=None):
             label = f"time {shape[1]}×{shape[0]} {bits}-bit (ms/image, CPU best / median / wall best)"
             measured = f"{best:.2f} / {median:.2f} / {wall:.2f}"
             row(label, measured, f"≤ {TARGETS[shape]}", "ms", best <= TARGETS[shape])
+            # tracking: the prior is the previous frame's result, the cross 6 px and 0.005 rad away
+            before, _ = render_cross(shape, (0.47 * shape[1] - 4, 0.52 * shape[0] + 4.5), 0.195, 0.01, seed=2, **kwargs)
+            prior = locate_cross(before, kwargs.get("saturation"))
+            best, median, wall = time_per_image(img, batches, per_batch, kwargs.get("saturation"), prior)
+            label = "  tracked (prior from the previous frame; CPU best / median / wall best)"
+            rows.append((label, f"{best:.2f} / {median:.2f} / {wall:.2f}", "(informative)", "-"))
 
     for sigma, amplitude, noise in [(2.0, 200.0, 2.0), (1.5, 150.0, 3.0), (1.2, 100.0, 2.0)]:
         ratio, _ = section_precision(n_sections, sigma, amplitude, noise, seed=3)

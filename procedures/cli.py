@@ -17,13 +17,14 @@ from procedures import (
     _cmd_resume,
     _cmd_run,
     _cmd_runs,
+    _cmd_serve,
     _cmd_show,
     _cmd_sim,
     _cmd_validate,
 )
 
 COMMANDS = (_cmd_locate, _cmd_sim, _cmd_validate, _cmd_run, _cmd_resume, _cmd_runs, _cmd_show, _cmd_report,
-            _cmd_export)
+            _cmd_export, _cmd_serve)
 
 
 def build_parser() -> argparse.ArgumentParser:

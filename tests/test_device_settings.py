@@ -21,7 +21,7 @@ import yaml
 from drivers.camera import PylonSettings
 from drivers.interferometer import SlcanSettings, SocketcandSettings
 from drivers.robot import URRtdeSettings
-from drivers.rotary_table import GcsSerialSettings, ModbusRtuSettings, ModbusTcpSettings
+from drivers.rotary_table import GcsSerialSettings, GcsTcpSettings, ModbusRtuSettings, ModbusTcpSettings
 from procedures._errors import ConfigError
 from procedures._loading import SCHEMA_DIR, load_station
 from procedures.cli import main
@@ -53,13 +53,16 @@ ADAPTERS = [
             ("exposure_s", "long"), "input should be a valid number", "pylonn", "pylon"),
     Adapter(ModbusTcpSettings, ("rotary_table",), {"adapter": "modbus_tcp", "host": "127.0.0.1", "port": 502},
             ("prot", 502), ("port", "five-o-two"), "input should be a valid integer", "modbus_tpc",
-            "modbus_tcp, modbus_rtu, gcs_serial"),
+            "modbus_tcp, modbus_rtu, gcs_serial, gcs_tcp"),
     Adapter(ModbusRtuSettings, ("rotary_table",), {"adapter": "modbus_rtu", "port": "/dev/ttyUSB0"},
             ("baud", 115200), ("unit", [1]), "input should be a valid integer", "modbus_rut",
-            "modbus_tcp, modbus_rtu, gcs_serial"),
+            "modbus_tcp, modbus_rtu, gcs_serial, gcs_tcp"),
     Adapter(GcsSerialSettings, ("rotary_table",), {"adapter": "gcs_serial", "port": "/dev/ttyUSB1", "axis": "1"},
             ("axes", "1"), ("baudrate", "fast"), "input should be a valid integer", "gcs",
-            "modbus_tcp, modbus_rtu, gcs_serial"),
+            "modbus_tcp, modbus_rtu, gcs_serial, gcs_tcp"),
+    Adapter(GcsTcpSettings, ("rotary_table",), {"adapter": "gcs_tcp", "host": "127.0.0.1", "port": 50000},
+            ("hostname", "127.0.0.2"), ("reference_on_open", "sometimes"), "input should be a valid boolean",
+            "gcs_tpc", "modbus_tcp, modbus_rtu, gcs_serial, gcs_tcp"),
     Adapter(SocketcandSettings, ("interferometer",),
             {"adapter": "socketcand", "host": "127.0.0.1", "port": 29536, "channel": "can0"},
             ("chanel", "can1"), ("open_attempts", "many"), "input should be a valid integer", "socketcan",
@@ -221,7 +224,7 @@ def test_the_published_schema_shows_every_adapters_fields():
 
     assert tags(devices["robot"]) == {"ur_rtde"}
     assert all(tags(cameras[s]) == {"pylon"} for s in "xyz")
-    assert tags(devices["rotary_table"]) == {"modbus_tcp", "modbus_rtu", "gcs_serial"}
+    assert tags(devices["rotary_table"]) == {"modbus_tcp", "modbus_rtu", "gcs_serial", "gcs_tcp"}
     assert tags(devices["interferometer"]) == {"socketcand", "slcan"}
     # The data formats a station may carry are in it too, field by field.
     assert {"word_order", "counts_per_rev", "status_bits"} <= set(definitions["RegisterMap"]["properties"])

@@ -72,12 +72,16 @@ def test_rotary_twin_runs_in_a_twin_process():
         with serial.Serial(path, timeout=1.0) as port:
             port.write(b"CSV?\n")
             assert port.read_until(b"\n") == b"2.0\n"
+            port.write(b"SVO 1 1\nFRF 1\n")  # powered on with the servo off and unreferenced
+            time.sleep(1.0)
             port.write(b"MOV 1 10\n")
             time.sleep(1.0)
-            port.write(b"POS? 1\n")
+            port.write(b"ERR?\nPOS? 1\n")
+            assert port.read_until(b"\n") == b"0\n"
             reported = float(port.read_until(b"\n").decode().split("=")[1])
         truth = proc.call("truth")
-        assert truth["settled"]
+        assert truth["settled"] and truth["homed"]
+        assert abs(reported - 10.0) < 1e-3
         assert abs(reported / 180 * 3.141592653589793 - truth["true_angle"]) <= truth["error_bound"] * 2
         proc.call("arm", transport="gcs", kind="drop_reply")
         assert proc.call("fired", transport="gcs") == []

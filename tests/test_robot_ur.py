@@ -12,8 +12,17 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from drivers import DeviceConnectionError, DeviceTimeout, MotionRefused, SettingsError
-from drivers.robot import EmergencyStop, MotionEnvelope, ProtectiveStop, Robot, URRobot, URRtdeSettings, create
+from drivers import DeviceConnectionError, DeviceTimeout, MotionRefused, ProtocolError, SettingsError
+from drivers.robot import (
+    EmergencyStop,
+    MotionEnvelope,
+    ProtectiveStop,
+    Robot,
+    RobotIdentity,
+    URRobot,
+    URRtdeSettings,
+    create,
+)
 from sim_devices import TwinProcess
 from sim_devices._transforms import invert, matrix_to_rotvec, pose6_to_matrix
 from sim_devices.cell import free_loopback_host
@@ -162,6 +171,54 @@ def test_iso_repeatability_of_30_visits_matches_the_configured_sigma(twin, robot
     # The controller's own readback does not see the error (encoders): it reports the target.
     np.testing.assert_allclose(invert(pose6_to_matrix(robot.tcp_pose())) @ pose6_to_matrix(approach), np.eye(4),
                                atol=1e-7)
+
+
+def dashboard_answer(host: str, command: str) -> str:
+    """The controller's own answer to a dashboard command (plain socket: the truth for the adapter)."""
+    with socket.create_connection((host, 29999), timeout=5.0) as sock:
+        reader = sock.makefile("rb")
+        reader.readline()  # greeting
+        sock.sendall(command.encode() + b"\n")
+        return reader.readline().decode().strip()
+
+
+def test_identity_is_read_from_the_controller(twin, robot):
+    model = dashboard_answer(twin.endpoints["host"], "get robot model")
+    if model.startswith("could not understand"):
+        pytest.skip(f"the UR twin does not answer 'get robot model' yet ({model!r}); it lands with the sim branch")
+    config = twin.call("describe")["config"]
+    assert robot.identity() == RobotIdentity(
+        manufacturer="Universal Robots",  # from the dashboard's greeting
+        model=model,
+        serial_number=config["serial_number"],
+        controller_version=".".join(str(v) for v in config["version"]),
+    )
+
+
+def test_set_payload_is_set_on_the_controller_and_read_back(twin, robot):
+    """``set_payload`` returns only once the controller's RTDE payload outputs report the new values."""
+    try:
+        robot.set_payload(1.25, [0.004, -0.002, 0.035])
+    except ProtocolError as error:
+        ignored = [e for e in twin.call("events") if "command 17 " in e and "not emulated" in e]
+        if not ignored:
+            raise
+        # The adapter saw that the payload was not applied; the twin's setPayload lands with the sim branch.
+        assert "reports 0.0000 kg at [0.000, 0.000, 0.000] mm, not 1.2500 kg" in error.cause
+        pytest.skip(f"the UR twin does not emulate setPayload yet ({ignored[-1]!r})")
+    robot.set_payload(0.8, [0.0, 0.0, 0.0])  # a zero centre of gravity is set too (not "keep the current one")
+    state = twin.call("state")
+    if "payload" in state:
+        assert state["payload"] == pytest.approx(0.8) and state["payload_cog"] == pytest.approx([0, 0, 0], abs=1e-8)
+
+
+def test_set_payload_refuses_bad_values_before_sending(twin, robot):
+    events = len(twin.call("events"))
+    with pytest.raises(ValueError, match=r"^robot: payload mass must be a finite number >= 0 kg, got nan$"):
+        robot.set_payload(float("nan"), [0, 0, 0])
+    with pytest.raises(ValueError, match="centre of gravity must be 3 finite numbers"):
+        robot.set_payload(1.0, [0.0, 0.1])
+    assert len(twin.call("events")) == events
 
 
 def test_protective_stop_mid_move_raises_and_can_be_recovered(twin, robot):

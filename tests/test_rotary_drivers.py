@@ -1,22 +1,34 @@
-"""Each rotary-table adapter against its twin over the real client library, with every fault."""
+"""Each rotary-table adapter against its twin over the real client library, with every fault:
+open() from the power-on state, soft limits, refused values, alarms, transport faults."""
 
 import logging
 import math
 import os
+import socket
 import threading
 import time
 
 import pytest
 
 from drivers import DeviceConnectionError, DeviceTimeout, MotionRefused, ProtocolError, SettingsError
-from drivers.rotary_table import GcsSerialSettings, GcsTable, ModbusTable, RegisterMap, RotaryTable, TableFault, create
+from drivers.rotary_table import (
+    CommandRefused,
+    GcsSerialSettings,
+    GcsTable,
+    GcsTcpSettings,
+    ModbusTable,
+    RegisterMap,
+    RotaryTable,
+    TableFault,
+    create,
+)
 from sim_devices import World
 from sim_devices.rotary_table import ARCSEC, RotaryTableTwin
 
 TIMEOUT = 0.2
 RETRIES = 2
 FAST_TABLE = {"max_speed": 3.0, "peak_torque": 1.0, "home_speed": 3.0, "seed": 5}
-TRANSPORTS = ["modbus_tcp", "modbus_rtu", "gcs"]
+TRANSPORTS = ["modbus_tcp", "modbus_rtu", "gcs", "gcs_tcp"]  # the twin's endpoints
 
 
 @pytest.fixture(scope="module")
@@ -35,6 +47,8 @@ def _config(transport, endpoints):
         return {"adapter": "modbus_tcp", "host": "127.0.0.1", "port": endpoints["modbus_tcp_port"], "unit": 1}
     if transport == "modbus_rtu":
         return {"adapter": "modbus_rtu", "port": endpoints["modbus_rtu_port"], "baudrate": 115200}
+    if transport == "gcs_tcp":
+        return {"adapter": "gcs_tcp", "host": "127.0.0.1", "port": endpoints["gcs_tcp_port"], "axis": "1"}
     return {"adapter": "gcs_serial", "port": endpoints["gcs_port"], "axis": "1"}
 
 
@@ -43,9 +57,9 @@ def connected(request, cell):
     world, twin, endpoints = cell
     transport = request.param
     table = create({**_config(transport, endpoints), "timeout": TIMEOUT, "retries": RETRIES}, name="table")
-    table.open()
-    twin.physics.alarm_reset()
-    table.home(timeout=10)
+    table.open()  # servo on and the reference move, once per twin (the first transport's open does them)
+    truth = twin.truth()
+    assert truth["enabled"] and truth["homed"] and truth["in_position"]
     yield world, twin, table, transport
     table.close()
 
@@ -113,6 +127,28 @@ def test_bad_input_is_refused_before_sending(rig):
         table.move_absolute(0.1, speed=-1.0)
 
 
+def test_the_soft_limits_are_the_same_on_every_face(rig):
+    """A target beyond the table's travel (±100 turns) is refused by the table itself, nothing moves,
+    and the table stays healthy (Modbus exception 3 on the opcode write, GCS error 7)."""
+    world, twin, table, _ = rig
+    start = table.wait_in_position(timeout=10)
+    travel = twin.table_config.travel_max
+    for target in (travel + 0.01, -travel - 0.01):
+        with pytest.raises(CommandRefused, match="code 3|GCS error 7") as refused:
+            table.move_absolute(target)
+        assert refused.value.device == "table" and "move_absolute" in refused.value.operation
+        state = table.state()
+        assert state.in_position and not state.moving and state.fault is None
+        assert abs(world.table_angle() - start) <= _bound(twin)
+    with pytest.raises(CommandRefused):
+        table.move_relative(travel + 0.01 - min(start, 0.0))  # lands just beyond the upper limit
+    with pytest.raises(CommandRefused, match="code 3|GCS error 17"):  # faster than the table can go
+        table.move_absolute(0.1, speed=10 * twin.table_config.max_speed)
+    assert not table.state().moving
+    table.move_absolute(start + 0.1)  # the table still takes a good command
+    assert abs(table.wait_in_position(timeout=10) - (start + 0.1)) <= 2 * _bound(twin)
+
+
 TRANSPORT_FAULTS = [
     ("drop_reply", {}),
     ("delay", {"seconds": 1.5 * TIMEOUT}),  # late: after the driver gave up, before it retries
@@ -163,13 +199,19 @@ def test_a_lost_command_reply_does_not_move_twice(rig):
 
 def test_exception_answers_become_typed_errors(rig):
     _, twin, table, transport = rig
-    if transport == "gcs":
+    if transport.startswith("gcs"):
         twin.faults(transport).arm("exception", count=1, code=7)
-        with pytest.raises(TableFault, match="GCS error 7"):
+        with pytest.raises(CommandRefused, match="GCS error 7"):
+            table.move_absolute(0.3)
+        twin.faults(transport).arm("exception", count=1, code=5)
+        with pytest.raises(TableFault, match="GCS error 5"):
             table.move_absolute(0.3)
         return
     twin.faults(transport).arm("exception", count=1, code=2)
     with pytest.raises(ProtocolError, match=r"encoder position register 0x0002.*code 2"):
+        table.position()
+    twin.faults(transport).arm("exception", count=1, code=3)
+    with pytest.raises(CommandRefused, match=r"encoder position register 0x0002.*code 3"):
         table.position()
     twin.faults(transport).arm("exception", count=1, code=4)
     with pytest.raises(TableFault, match="code 4"):
@@ -191,6 +233,87 @@ def test_modbus_tcp_disconnect_reconnects(cell):
         with pytest.raises(DeviceConnectionError):
             table.position()
         twin.faults("modbus_tcp").clear()
+
+
+def test_gcs_tcp_disconnect_reconnects(cell):
+    """A PI controller's TCP connection closed under a query: the driver reconnects and asks again."""
+    _, twin, endpoints = cell
+    table = create({**_config("gcs_tcp", endpoints), "timeout": TIMEOUT, "retries": RETRIES}, name="table")
+    with table:
+        twin.faults("gcs_tcp").arm("disconnect", count=1)
+        assert abs(table.position() - twin.physics.read_counts() * twin.physics.quantum) <= _bound(twin)
+        assert twin.faults("gcs_tcp").fired()[-1][0].value == "disconnect"
+        twin.faults("gcs_tcp").arm("disconnect", count=-1)
+        with pytest.raises(DeviceConnectionError):
+            table.position()
+        twin.faults("gcs_tcp").clear()
+        table.position()
+
+
+# ------------------------------------------------------------------------------ open() from power-on
+@pytest.fixture(params=TRANSPORTS)
+def fresh_twin(request):
+    """A twin just powered on (servo off, unreferenced) and the adapter settings for one of its faces."""
+    world = World()
+    world.mount_on_table("z")
+    twin = RotaryTableTwin(world, {"transports": [request.param], "table": FAST_TABLE})
+    endpoints = twin.start()
+    yield world, twin, {**_config(request.param, endpoints), "timeout": 0.5}
+    twin.stop()
+    world.truth.close()
+
+
+def test_open_switches_the_servo_on_and_references_the_table(fresh_twin):
+    world, twin, config = fresh_twin
+    truth = twin.truth()
+    assert not truth["enabled"] and not truth["homed"]  # the power-on state
+    with create(config, name="table") as table:
+        truth = twin.truth()
+        assert truth["enabled"] and truth["homed"] and truth["in_position"]
+        assert abs(world.table_angle()) <= _bound(twin)  # the reference mark is the true zero
+        table.move_absolute(0.3)
+        assert abs(table.wait_in_position(timeout=10) - world.table_angle()) <= _bound(twin)
+    with create(config, name="table") as table:  # a second open finds the table ready and leaves it
+        assert abs(table.position() - 0.3) <= 2 * _bound(twin)
+
+
+def test_open_without_reference_leaves_the_table_as_it_is(fresh_twin):
+    _, twin, config = fresh_twin
+    with create({**config, "reference_on_open": False}, name="table") as table:
+        assert not twin.truth()["enabled"] and not twin.truth()["homed"]
+        with pytest.raises(TableFault, match="servo is off|GCS error 5"):
+            table.move_absolute(0.3)  # the table itself refuses: servo off
+        assert not twin.truth()["moving"]
+
+
+def test_open_with_an_alarm_present(fresh_twin):
+    _, twin, config = fresh_twin
+    twin.physics.enable(True)
+    twin.raise_alarm("encoder_fault")
+    if config["adapter"].startswith("modbus"):  # a drive alarm is the operator's to clear, not open()'s
+        with pytest.raises(TableFault, match="encoder fault") as failed:
+            create(config, name="table").open()
+        assert failed.value.operation == "open" and not twin.truth()["homed"]
+    else:  # a PI controller shows a motion error as servo off, and SVO 1 1 is how it is cleared
+        with create(config, name="table"):
+            assert twin.truth()["homed"] and not twin.truth()["alarms"]
+
+
+@pytest.mark.parametrize("transport", TRANSPORTS)
+def test_open_gives_up_on_a_reference_move_that_does_not_end(transport):
+    world = World()
+    twin = RotaryTableTwin(world, {"transports": [transport], "table": {**FAST_TABLE, "home_speed": 0.001}})
+    endpoints = twin.start()  # homing from power-on goes 0.5° below the mark and back: ~17 s at this speed
+    try:
+        started = time.monotonic()
+        with pytest.raises(DeviceTimeout, match="not referenced after 0.3 s") as failed:
+            create({**_config(transport, endpoints), "reference_timeout": 0.3}, name="table").open()
+        assert failed.value.device == "table" and "open: reference move" in failed.value.operation
+        assert time.monotonic() - started < 5.0
+        assert twin.truth()["enabled"] and twin.truth()["homing"]  # the servo did come on
+    finally:
+        twin.stop()
+        world.truth.close()
 
 
 def test_non_default_register_map(cell):
@@ -222,8 +345,11 @@ def test_factory_builds_each_adapter_and_rejects_bad_configs():
     assert isinstance(create({"adapter": "modbus_rtu", "port": "/dev/null"}, name="t"), ModbusTable)
     table = create(GcsSerialSettings(port="/dev/null", axis="A"), name="t")
     assert isinstance(table, GcsTable) and table.axis == "A" and table.timeout == 0.5
+    table = create({"adapter": "gcs_tcp", "host": "127.0.0.1"}, name="t")
+    assert isinstance(table, GcsTable) and isinstance(table.settings, GcsTcpSettings)
+    assert table.settings.port == 50000 and table.settings.reference_on_open
     with pytest.raises(SettingsError, match=r"^rotary_table 't': unknown adapter 'canopen'; "
-                                            r"expected one of modbus_tcp, modbus_rtu, gcs_serial$"):
+                                            r"expected one of modbus_tcp, modbus_rtu, gcs_serial, gcs_tcp$"):
         create({"adapter": "canopen"}, name="t")
     with pytest.raises(SettingsError, match=r"\(modbus_tcp\): setting 'host' is missing"):
         create({"adapter": "modbus_tcp"}, name="t")
@@ -235,8 +361,15 @@ def test_factory_builds_each_adapter_and_rejects_bad_configs():
         create({"adapter": "modbus_rtu", "port": "/dev/null", "register_map": {"status": 2}}, name="t")
     with pytest.raises(SettingsError, match="axis: string should match pattern"):
         create({"adapter": "gcs_serial", "port": "/dev/null", "axis": "1 2"}, name="t")
+    with pytest.raises(SettingsError, match="unit 0 is the RTU broadcast address"):
+        create({"adapter": "modbus_rtu", "port": "/dev/null", "unit": 0}, name="t")
     with pytest.raises(DeviceConnectionError):
         create({"adapter": "gcs_serial", "port": "/nonexistent/tty"}, name="t").open()
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        free_port = probe.getsockname()[1]
+    with pytest.raises(DeviceConnectionError, match=f"open tcp 127.0.0.1:{free_port}"):
+        create({"adapter": "gcs_tcp", "host": "127.0.0.1", "port": free_port}, name="t").open()
 
 
 def test_register_map_is_data_with_partial_groups():

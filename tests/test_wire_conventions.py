@@ -5,9 +5,13 @@ written from ``docs/rotary_table.md`` and ``docs/interferometer.md`` alone, so a
 (word order, scale, byte order, sign, CRC) on either side fails here instead of cancelling out:
 
 - raw Modbus registers read with a plain pymodbus client, decoded here, against the world's true
-  table angle; raw register writes in the documented encoding move the table where they say;
+  table angle; raw register writes in the documented encoding move the table where they say; the
+  documented power-on state, exception codes and device-id rules;
+- raw GCS lines over TCP (a socket) and over the serial face (pyserial): the documented power-on
+  refusal (error 5), servo on, reference move, soft limits (error 7) and answer format;
 - raw CAN frames captured with python-can, decoded here (int40 little-endian, counter, status
-  bits, CRC-8/SAE-J1850), against the interferometer head's true displacement;
+  bits, CRC-8/SAE-J1850), against the interferometer head's true displacement; raw socketcand text
+  read from a plain socket (3-hex-digit ids, ``sec.usec`` receive timestamps in bus order);
 - the driver against the same truth, and the same check run on a driver with its word order
   swapped, its byte order swapped or its scale off (monkeypatched here only) must fail.
 """
@@ -17,12 +21,15 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import re
+import socket
 import struct
 import time
 from collections.abc import Callable, Iterator
 
 import can
 import pytest
+import serial
 from pymodbus.client import ModbusTcpClient
 
 from drivers import DeviceError
@@ -62,7 +69,12 @@ OTHER_MAP_CONFIG = {"alarm": 40, "status": 41, "encoder_position": 10, "position
                     "acceleration": 31, "actual_velocity": 32, "control": 50, "word_order": "little",
                     "counts_per_rev": 8_388_608}
 ENABLED, IN_POSITION, MOVING, HOMED = 0, 3, 4, 13
-MOVE_ABSOLUTE, HOME = 0x67, 0x6E
+MOVE_ABSOLUTE, MOVE_RELATIVE, HOME, ENABLE = 0x67, 0x66, 0x6E, 0x9F
+# Exception codes: 2 illegal address (unmapped or read-only), 3 illegal value (a word of 0 or above
+# the maximum, an unknown opcode, a target beyond the ±36000° soft limits), 4 cannot act now (servo
+# off, unreferenced, alarm). Other unit ids: exception 11 over TCP (0 and 255 name the drive itself).
+ILLEGAL_ADDRESS, ILLEGAL_VALUE, DEVICE_FAILURE, GATEWAY_NO_RESPONSE = 2, 3, 4, 11
+TRAVEL_DEG = 36_000.0
 
 
 def _s32(first: int, second: int, low_word_first: bool) -> int:
@@ -100,12 +112,24 @@ class RawDrive:
         return self.counts() * TURN / self.layout["counts_per_rev"]
 
     def command(self, opcode: int, target_counts: int | None = None) -> None:
+        reply = self.try_command(opcode, target_counts)
+        assert not reply.isError(), reply
+
+    def try_command(self, opcode: int, target_counts: int | None = None):
+        """Write the target (if any) and the opcode; the opcode write's reply."""
         if target_counts is not None:
             reply = self.client.write_registers(self.layout["command"], _words(target_counts, self.layout["little"]),
                                                 device_id=1)
             assert not reply.isError(), reply
-        reply = self.client.write_register(self.layout["control"], opcode, device_id=1)
-        assert not reply.isError(), reply
+        return self.client.write_register(self.layout["control"], opcode, device_id=1)
+
+    def ready(self) -> None:
+        """What a set-up does after power-on: enable, then home."""
+        self.command(ENABLE)
+        _wait_until(lambda: self.status_bit(ENABLED), "enabled")
+        self.command(HOME)
+        _wait_until(lambda: self.status_bit(HOMED), "homed")
+        self.wait_in_position()
 
     def wait_in_position(self) -> None:
         _wait_until(lambda: self.status_bit(IN_POSITION) and not self.status_bit(MOVING), "in position")
@@ -140,9 +164,7 @@ def table_twin() -> Iterator[tuple[World, RotaryTableTwin, int]]:
 def homed_drive(table_twin) -> Iterator[tuple[World, RotaryTableTwin, RawDrive]]:
     world, twin, port = table_twin
     drive = RawDrive(port, DEFAULT_MAP)
-    drive.command(HOME)
-    _wait_until(lambda: drive.status_bit(HOMED), "homed")
-    drive.wait_in_position()
+    drive.ready()
     yield world, twin, drive
     drive.close()
 
@@ -201,8 +223,7 @@ def test_a_non_default_register_map_is_served_as_configured(other_table_twin):
     world, twin, port = other_table_twin
     drive = RawDrive(port, OTHER_MAP)
     try:
-        drive.command(HOME)
-        _wait_until(lambda: drive.status_bit(HOMED), "homed")
+        drive.ready()
         target_counts = round(-2.5 / TURN * OTHER_MAP["counts_per_rev"])
         drive.command(MOVE_ABSOLUTE, target_counts)
         drive.wait_in_position()
@@ -214,6 +235,143 @@ def test_a_non_default_register_map_is_served_as_configured(other_table_twin):
         assert drive.read("command", 2)[1] == (target_counts >> 16) & 0xFFFF  # the high word second
     finally:
         drive.close()
+
+
+def test_modbus_power_on_state_and_exception_codes(table_twin):
+    world, twin, port = table_twin
+    drive = RawDrive(port, DEFAULT_MAP)
+    try:
+        status = drive.read("status")[0]
+        assert not status >> ENABLED & 1 and not status >> HOMED & 1  # powered on: disabled, unreferenced
+        refused = drive.try_command(HOME)
+        assert refused.isError() and refused.exception_code == DEVICE_FAILURE  # cannot act now: servo off
+        drive.command(ENABLE)
+        refused = drive.try_command(MOVE_ABSOLUTE, 1000)
+        assert refused.isError() and refused.exception_code == DEVICE_FAILURE  # not referenced yet
+        drive.ready()
+        beyond = round((TRAVEL_DEG + 1.0) / 360.0 * DEFAULT_MAP["counts_per_rev"])
+        for opcode, counts in ((MOVE_ABSOLUTE, beyond), (MOVE_ABSOLUTE, -beyond), (MOVE_RELATIVE, beyond)):
+            refused = drive.try_command(opcode, counts)
+            assert refused.isError() and refused.exception_code == ILLEGAL_VALUE, (opcode, counts)
+            assert not drive.status_bit(MOVING) and drive.read("alarm") == [0]  # no motion, no alarm
+        refused = drive.try_command(0x42)  # no such opcode
+        assert refused.isError() and refused.exception_code == ILLEGAL_VALUE
+        for register in ("velocity", "acceleration"):
+            value = drive.read(register)[0]
+            for word in (0, value + 1_000):
+                reply = drive.client.write_register(DEFAULT_MAP[register], word, device_id=1)
+                assert reply.isError() and reply.exception_code == ILLEGAL_VALUE, (register, word)
+            assert not drive.client.write_register(DEFAULT_MAP[register], value, device_id=1).isError()
+            assert drive.read(register) == [value]  # what is read back can be written back
+        reply = drive.client.write_register(DEFAULT_MAP["status"], 1, device_id=1)  # read-only
+        assert reply.isError() and reply.exception_code == ILLEGAL_ADDRESS
+        reply = drive.client.read_holding_registers(DEFAULT_MAP["control"] + 1, count=1, device_id=1)  # unmapped
+        assert reply.isError() and reply.exception_code == ILLEGAL_ADDRESS
+        for unit in (0, 255):
+            reply = drive.client.read_holding_registers(DEFAULT_MAP["status"], count=1, device_id=unit)
+            assert not reply.isError() and reply.registers == drive.read("status")
+        reply = drive.client.read_holding_registers(DEFAULT_MAP["status"], count=1, device_id=7)
+        assert reply.isError() and reply.exception_code == GATEWAY_NO_RESPONSE
+    finally:
+        drive.close()
+
+
+# ----------------------------------------------------------------------- GCS lines
+# docs/rotary_table.md: GCS 2.0, axis "1", degrees; set commands silent, errors latched and read with
+# ERR?; "<axis>=<value>" answers. Power-on: servo off, unreferenced: MOV latches 5 until "SVO 1 1"
+# and "FRF 1". Soft limits ±36000° (TMN?/TMX?): a MOV beyond latches 7. The TCP face is the same.
+class RawGcs:
+    """GCS lines over a plain socket or a pyserial port, knowing only the documented syntax."""
+
+    def __init__(self, port) -> None:
+        self.port = port
+
+    def ask(self, line: str) -> list[str]:
+        self.port.write(line.encode("ascii") + b"\n")
+        lines = []
+        while True:
+            raw = self.port.read_until(b"\n")
+            assert raw.endswith(b"\n"), f"no answer to {line!r}: {raw!r}"
+            if raw.endswith(b" \n"):
+                lines.append(raw[:-2].decode("ascii"))
+                continue
+            lines.append(raw[:-1].decode("ascii"))
+            return lines
+
+    def tell(self, line: str) -> int:
+        """A set command, then its latched error code."""
+        self.port.write(line.encode("ascii") + b"\n")
+        return int(self.ask("ERR?")[0])
+
+    def value(self, query: str) -> float:
+        (answer,) = self.ask(f"{query} 1")
+        axis, value = answer.split("=")
+        assert axis == "1"
+        return float(value)
+
+
+class _SocketPort:
+    """``write``/``read_until`` on a TCP socket, as pyserial offers them on a serial port."""
+
+    def __init__(self, port: int) -> None:
+        self.sock = socket.create_connection(("127.0.0.1", port), timeout=5.0)
+        self.buffer = b""
+
+    def write(self, data: bytes) -> None:
+        self.sock.sendall(data)
+
+    def read_until(self, end: bytes) -> bytes:
+        while end not in self.buffer:
+            chunk = self.sock.recv(4096)
+            if not chunk:
+                break
+            self.buffer += chunk
+        index = self.buffer.find(end)
+        line, self.buffer = (self.buffer, b"") if index < 0 else (self.buffer[:index + 1], self.buffer[index + 1:])
+        return line
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+@pytest.fixture(params=["gcs", "gcs_tcp"])
+def gcs_line(request) -> Iterator[tuple[World, RotaryTableTwin, RawGcs]]:
+    world = World(WorldConfig(seed=7))
+    world.mount_on_table("z")
+    twin = RotaryTableTwin(world, {"transports": [request.param], "table": FAST_TABLE})
+    endpoints = twin.start()
+    twin.sync()
+    port = (_SocketPort(endpoints["gcs_tcp_port"]) if request.param == "gcs_tcp"
+            else serial.Serial(endpoints["gcs_port"], timeout=5.0))
+    try:
+        yield world, twin, RawGcs(port)
+    finally:
+        port.close()
+        twin.stop()
+        world.truth.close()
+
+
+def test_gcs_lines_power_on_reference_limits_and_truth(gcs_line):
+    world, twin, gcs = gcs_line
+    assert gcs.ask("CSV?") == ["2.0"]
+    assert gcs.value("SVO?") == 0 and gcs.value("FRF?") == 0  # powered on: servo off, unreferenced
+    assert gcs.tell("MOV 1 10") == 5
+    assert gcs.tell("FRF 1") == 5  # the reference move needs the servo
+    assert gcs.tell("SVO 1 1") == 0 and gcs.value("SVO?") == 1
+    assert gcs.tell("MOV 1 10") == 5  # still unreferenced
+    assert gcs.tell("FRF 1") == 0
+    _wait_until(lambda: gcs.value("FRF?") == 1 and gcs.value("ONT?") == 1, "referenced")
+    assert gcs.value("TMN?") == -TRAVEL_DEG and gcs.value("TMX?") == TRAVEL_DEG
+    assert gcs.tell(f"MOV 1 {TRAVEL_DEG + 1}") == 7 and gcs.tell(f"MOV 1 {-TRAVEL_DEG - 1}") == 7
+    assert gcs.value("ONT?") == 1 and abs(gcs.value("POS?")) < 1e-3  # nothing moved
+    assert gcs.tell("MOV 1 -20.5") == 0
+    _wait_until(lambda: gcs.value("ONT?") == 1, "on target")
+    _wait_until(lambda: world.state().settled and twin.physics.settled(), "settled")
+    bound = math.degrees(_bound(twin, 2**24))
+    assert abs(math.degrees(world.table_angle()) + 20.5) <= bound
+    assert abs(gcs.value("POS?") - math.degrees(world.table_angle())) <= bound
+    lines = gcs.ask("HLP?")  # multi-line: every line but the last ends with " \n" (checked in ask)
+    assert len(lines) > 2 and lines[0].startswith("The following")
 
 
 # ----------------------------------------------------------------------- the check has teeth
@@ -379,6 +537,33 @@ def test_a_command_with_a_bad_crc_is_ignored(ifm_twin, raw_bus):
     assert not [f for f in frames if f.arbitration_id == REPLY_ID]
     assert twin.truth()["datum_generation"] == 0
     assert _command(raw_bus, DATUM, token=10)[3] == 1  # the same command with its CRC right is done
+
+
+# docs/interferometer.md, socketcand: "< hi >" alone, "< ok >" to open and rawmode, then
+# "< frame <3 hex digits> <sec>.<usec> <hex data> >", the timestamp being the frame's receive time on
+# the bus (epoch seconds), in bus order.
+_FRAME = re.compile(rb"< frame ([0-9A-F]{3}) (\d+)\.(\d{6}) ([0-9A-F]*) >")
+
+
+def test_socketcand_text_on_the_wire(ifm_twin):
+    _, twin = ifm_twin
+    endpoint = twin.endpoints["socketcand"]
+    with socket.create_connection((endpoint["host"], endpoint["port"]), timeout=5.0) as sock:
+        assert sock.recv(64) == b"< hi >"
+        sock.sendall(f"< open {endpoint['channel']} >".encode())
+        assert sock.recv(64) == b"< ok >"
+        sock.sendall(b"< rawmode >")
+        assert sock.recv(64) == b"< ok >"
+        text, deadline = b"", time.monotonic() + 0.5
+        while time.monotonic() < deadline:
+            text += sock.recv(65536)
+    frames = _FRAME.findall(text)
+    assert len(frames) > 100 and len(frames) == text.count(b"< frame")
+    stamps = [int(sec) + int(usec) / 1e6 for _, sec, usec, _ in frames]
+    assert all(b > a for a, b in zip(stamps, stamps[1:]))
+    assert abs(stamps[-1] - time.time()) < 1.0
+    displacement = [(int(i, 16), bytes.fromhex(d.decode())) for i, _, _, d in frames if int(i, 16) == DISPLACEMENT_ID]
+    assert displacement and all(_good_crc(can.Message(arbitration_id=i, data=d)) for i, d in displacement)
 
 
 # ----------------------------------------------------------------------- the check has teeth

@@ -18,6 +18,7 @@ from drivers.robot._interface import (
     ProgramStopped,
     ProtectiveStop,
     Robot,
+    RobotIdentity,
     RobotState,
 )
 from drivers.robot._settings import RobotSettings, URRtdeSettings
@@ -56,6 +57,7 @@ __all__ = [
     "ProgramStopped",
     "ProtectiveStop",
     "Robot",
+    "RobotIdentity",
     "RobotSettings",
     "RobotState",
     "URRobot",

@@ -7,6 +7,7 @@ positions are ``(6,)`` arrays in radians. Speeds are m/s (linear) or rad/s (join
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
@@ -42,6 +43,28 @@ class RobotState:
     steady: bool
     robot_mode: int = -1
     safety_mode: int = -1
+
+
+@dataclass(frozen=True)
+class RobotIdentity:
+    """Who the controller says it is: the robot's part of the ISO 9283 test conditions.
+
+    Attributes
+    ----------
+    manufacturer : str
+        E.g. ``"Universal Robots"``.
+    model : str
+        The controller's answer for the arm's model, e.g. ``"UR5"``.
+    serial_number : str
+        The robot's serial number, as the controller reports it.
+    controller_version : str
+        Controller software version, e.g. ``"5.15.0.0"`` (PolyScope).
+    """
+
+    manufacturer: str
+    model: str
+    serial_number: str
+    controller_version: str
 
 
 @runtime_checkable
@@ -100,3 +123,11 @@ class Robot(Protocol):
     def tcp_offset(self) -> np.ndarray: ...
 
     def state(self) -> RobotState: ...
+
+    def identity(self) -> RobotIdentity:
+        """Manufacturer, model, serial number and controller version, read from the controller."""
+        ...
+
+    def set_payload(self, mass_kg: float, cog_m: Sequence[float]) -> None:
+        """Set the payload mass (kg) and centre of gravity (m, tool flange frame) on the controller."""
+        ...

@@ -2,8 +2,9 @@
 
 ``create(settings, name=...)`` builds the adapter that ``settings.adapter`` names:
 ``modbus_tcp`` / ``modbus_rtu`` (``ModbusTable``, a servo drive described by a ``RegisterMap``) or
-``gcs_serial`` (``GcsTable``, a PI GCS 2.0 controller). The table is not opened yet: call
-``open()`` or use it as a context manager.
+``gcs_serial`` / ``gcs_tcp`` (``GcsTable``, a PI GCS 2.0 controller on its serial or TCP interface).
+The table is not opened yet: call ``open()`` (servo on, reference move if needed) or use it as a
+context manager.
 """
 
 from __future__ import annotations
@@ -13,11 +14,12 @@ from typing import Any
 
 from drivers._settings import SettingsUnion
 from drivers.rotary_table._gcs import GcsTable
-from drivers.rotary_table._interface import RotaryTable, TableFault, TableState
+from drivers.rotary_table._interface import CommandRefused, RotaryTable, TableFault, TableState
 from drivers.rotary_table._modbus import ModbusTable
 from drivers.rotary_table._registers import AlarmBits, Opcodes, RegisterMap, StatusBits
 from drivers.rotary_table._settings import (
     GcsSerialSettings,
+    GcsTcpSettings,
     ModbusRtuSettings,
     ModbusTcpSettings,
     RotaryTableSettings,
@@ -43,7 +45,7 @@ def create(settings: RotaryTableSettings | Mapping[str, Any], *, name: str = "ro
         For a mapping that is not valid settings (one line naming the adapter and the setting).
     """
     checked = _SETTINGS_UNION.validate(settings, name=name)
-    if isinstance(checked, GcsSerialSettings):
+    if isinstance(checked, GcsSerialSettings | GcsTcpSettings):
         return GcsTable(checked, name=name)
     return ModbusTable(checked, name=name)
 
@@ -51,8 +53,10 @@ def create(settings: RotaryTableSettings | Mapping[str, Any], *, name: str = "ro
 __all__ = [
     "ADAPTERS",
     "AlarmBits",
+    "CommandRefused",
     "GcsSerialSettings",
     "GcsTable",
+    "GcsTcpSettings",
     "ModbusRtuSettings",
     "ModbusTable",
     "ModbusTcpSettings",

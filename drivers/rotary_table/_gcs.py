@@ -1,14 +1,22 @@
-"""``GcsTable``: a rotary stage behind a PI-GCS-2.0-style controller on a serial line (pyserial).
+"""``GcsTable``: a rotary stage behind a PI-GCS-2.0-style controller, on a serial line (pyserial,
+adapter ``gcs_serial``) or on the controller's TCP interface (adapter ``gcs_tcp``; PI: port 50000).
+Both share everything here; only the byte link differs (``_gcs_link.py``).
 
 Line protocol: commands end with LF; set commands are silent and are followed by ``ERR?`` (a
-nonzero, latched error code becomes ``TableFault``); queries answer one line per item, every line but
-the last ending in ``" \\n"``. Degrees on the wire, radians in the API.
+nonzero, latched error code becomes ``TableFault``, or ``CommandRefused`` for a refused value:
+7 out of limits, 17 out of range); queries answer one line per item, every line but the last ending
+in ``" \\n"``. Degrees on the wire, radians in the API.
+
+Opening: ``CSV?`` (GCS 2.0), ``*IDN?``, ``ERR?`` (clears a latched error), then unless
+``reference_on_open`` is off what a PI controller needs before it moves: ``SVO <axis> 1`` if the
+servo is off, and ``FRF <axis>`` if the axis is unreferenced, waited for within
+``servo_timeout``/``reference_timeout``.
 
 Robustness: the input is flushed before every request; a query that gets no answer within
 ``timeout`` is a ``DeviceTimeout``; an answer that is not printable ASCII, does not parse, or stops
 without its LF is a ``ProtocolError``. Both are retried ``retries`` times (after a guard wait for a
-late answer, which the flush then discards). Set commands are never resent (``MVR`` twice would move
-twice); only their ``ERR?`` is.
+late answer, which the flush then discards). On TCP a lost connection is re-opened and a query
+retried. Set commands are never resent (``MVR`` twice would move twice); only their ``ERR?`` is.
 """
 
 from __future__ import annotations
@@ -19,11 +27,10 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-import serial
-
 from drivers._errors import DeviceConnectionError, DeviceError, DeviceTimeout, MotionRefused, ProtocolError
-from drivers.rotary_table._interface import TableFault, TableState
-from drivers.rotary_table._settings import GcsSerialSettings
+from drivers.rotary_table._gcs_link import GcsLink, SerialLink, TcpLink
+from drivers.rotary_table._interface import CommandRefused, TableFault, TableState
+from drivers.rotary_table._settings import GcsSerialSettings, GcsSettings
 
 PI_ERRORS = {
     1: "parameter syntax error",
@@ -36,6 +43,7 @@ PI_ERRORS = {
     1024: "motion error (position error too large, servo switched off)",
 }
 STOPPED_BY_COMMAND = 10
+REFUSED_VALUES = (7, 17)  # the controller refused a value; nothing moved, nothing is wrong with it
 _NUMBER = r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?"
 
 
@@ -44,49 +52,76 @@ class GcsTable:
 
     Parameters
     ----------
-    settings : GcsSerialSettings
-        Serial port (or pyserial URL), baud rate, axis, answer timeout, retries, poll interval.
+    settings : GcsSerialSettings or GcsTcpSettings
+        Serial port (or pyserial URL) and baud rate, or host and port; axis, answer timeout,
+        retries, poll interval, and what ``open()`` does (``reference_on_open`` and its timeouts).
     name : str
         Device name for errors.
     """
 
-    def __init__(self, settings: GcsSerialSettings, *, name: str = "rotary_table") -> None:
+    def __init__(self, settings: GcsSettings, *, name: str = "rotary_table") -> None:
         self.name = name
         self.settings = settings
-        self.port = settings.port
-        self.baudrate = settings.baudrate
         self.axis = settings.axis
         self.timeout = settings.timeout
         self.retries = settings.retries
         self.poll_interval = settings.poll_interval
-        self._serial: serial.Serial | None = None
+        self._link: GcsLink
+        if isinstance(settings, GcsSerialSettings):
+            self.port = settings.port
+            self._link = SerialLink(settings.port, settings.baudrate, settings.timeout)
+        else:
+            self.port = f"{settings.host}:{settings.port}"
+            self._link = TcpLink(settings.host, settings.port, settings.timeout)
         self.identity = ""
 
     # ----------------------------------------------------------------------------- connection
     def open(self) -> None:
-        """Open the port, check the GCS version, read the identity and clear a latched error."""
+        """Connect, check the GCS version, read the identity, clear a latched error; then (unless
+        ``reference_on_open`` is off) servo on and the reference move if the axis is unreferenced.
+
+        Raises
+        ------
+        DeviceConnectionError, DeviceTimeout, ProtocolError
+            The controller cannot be reached, does not answer, or does not speak GCS 2.0.
+        TableFault
+            The controller refused the servo-on or the reference move (its GCS error).
+        DeviceTimeout
+            The servo did not come on within ``servo_timeout``, or the reference move did not end
+            within ``reference_timeout`` (the operation names which).
+        """
         self.close()
-        try:
-            self._serial = serial.serial_for_url(self.port, baudrate=self.baudrate, timeout=self.timeout,
-                                                 write_timeout=self.timeout)
-        except (serial.SerialException, OSError, ValueError) as exc:
-            raise DeviceConnectionError(self.name, f"open {self.port}", str(exc)) from None
+        self._connect("open")
         try:
             version = self._query("CSV?")[0].strip()
             if version not in ("2", "2.0"):
                 raise ProtocolError(self.name, "CSV?", f"controller speaks GCS {version!r}, expected 2.0")
             self.identity = self._query("*IDN?")[0].strip()
             self._error_code()  # clear whatever was latched before we came
+            if self.settings.reference_on_open:
+                self._make_ready()
         except DeviceError:
             self.close()
             raise
 
+    def _connect(self, operation: str) -> None:
+        try:
+            self._link.open()
+        except (OSError, ValueError) as exc:
+            raise DeviceConnectionError(self.name, f"{operation} {self._link.description}", str(exc)) from None
+
+    def _make_ready(self) -> None:
+        """What a PI controller needs before it moves: servo on, then the reference move."""
+        settings = self.settings
+        if not self._axis_flag("SVO?"):
+            self._command(f"SVO {self.axis} 1", "open: servo on (SVO)")
+            self._wait(lambda: self._axis_flag("SVO?"), settings.servo_timeout, "open: servo on (SVO)",
+                       "the servo is not on")
+        if not self._axis_flag("FRF?"):
+            self.home(settings.reference_timeout, operation="open: reference move (FRF)")
+
     def close(self) -> None:
-        if self._serial is not None:
-            try:
-                self._serial.close()
-            finally:
-                self._serial = None
+        self._link.close()
 
     def __enter__(self) -> GcsTable:
         self.open()
@@ -96,33 +131,31 @@ class GcsTable:
         self.close()
 
     # ----------------------------------------------------------------------------- line I/O
-    def _port(self, operation: str) -> serial.Serial:
-        if self._serial is None:
+    def _ensure_link(self, operation: str) -> None:
+        if self._link.is_open:
+            return
+        if not self._link.reconnectable:
             raise DeviceConnectionError(self.name, operation, "not open (call open() first)")
-        return self._serial
+        self._connect(f"{operation}: reconnect")  # a TCP connection that was lost
 
     def _send(self, line: str, operation: str) -> None:
-        port = self._port(operation)
+        self._ensure_link(operation)
         try:
-            port.reset_input_buffer()  # a late answer to an earlier request must not pass for this one
-            port.write(line.encode("ascii") + b"\n")
-            port.flush()
-        except (serial.SerialException, OSError) as exc:
+            self._link.discard_input()  # a late answer to an earlier request must not pass for this one
+            self._link.write(line.encode("ascii") + b"\n")
+        except OSError as exc:
             raise DeviceConnectionError(self.name, operation, f"write failed: {exc}") from None
 
     def _read_answer(self, operation: str) -> list[str]:
-        port = self._port(operation)
         deadline = time.monotonic() + self.timeout
         lines: list[str] = []
         partial = b""
         while True:
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
+            if deadline - time.monotonic() <= 0:
                 break
-            port.timeout = remaining
             try:
-                chunk = port.read_until(b"\n")
-            except (serial.SerialException, OSError) as exc:
+                chunk = self._link.read_line(deadline)
+            except OSError as exc:
                 raise DeviceConnectionError(self.name, operation, f"read failed: {exc}") from None
             partial += chunk
             if not partial.endswith(b"\n"):
@@ -147,8 +180,8 @@ class GcsTable:
         """Send a query, return its lines (each matching ``pattern`` if given); bounded retries."""
         last: DeviceError | None = None
         for _attempt in range(self.retries + 1):
-            self._send(line, line)
             try:
+                self._send(line, line)
                 lines = self._read_answer(line)
                 if pattern is not None:
                     for item in lines:
@@ -161,6 +194,12 @@ class GcsTable:
             except ProtocolError as exc:
                 last = exc
                 time.sleep(min(self.timeout, 0.05))  # let the rest of a garbled answer drain
+            except DeviceConnectionError as exc:
+                if not self._link.reconnectable:
+                    raise
+                last = exc  # a query is safe to resend on a new connection
+                self._link.close()
+                time.sleep(min(self.timeout, 0.05))
         assert last is not None
         if isinstance(last, DeviceTimeout) and line != "ERR?":
             code = self._error_code(raise_on_failure=False)
@@ -199,7 +238,10 @@ class GcsTable:
         self._send(line, operation)
         code = self._error_code()
         if code and code not in tolerate:
-            raise TableFault(self.name, operation, f"GCS error {code}: {PI_ERRORS.get(code, 'see the manual')}")
+            text = f"GCS error {code}: {PI_ERRORS.get(code, 'see the manual')}"
+            if code in REFUSED_VALUES:
+                raise CommandRefused(self.name, operation, text)
+            raise TableFault(self.name, operation, text)
 
     # ----------------------------------------------------------------------------- table API
     def _set_speed(self, speed: float | None, operation: str) -> None:
@@ -223,7 +265,8 @@ class GcsTable:
         self._set_speed(speed, operation)
         self._command(f"MVR {self.axis} {math.degrees(delta):.9f}", operation)
 
-    def _wait(self, done: Callable[[], bool], timeout: float, operation: str) -> None:
+    def _wait(self, done: Callable[[], bool], timeout: float, operation: str,
+              not_yet: str = "not on target") -> None:
         deadline = time.monotonic() + timeout
         polls = 0
         while True:
@@ -235,16 +278,18 @@ class GcsTable:
                 if code:
                     raise TableFault(self.name, operation, f"GCS error {code}: {PI_ERRORS.get(code, 'see the manual')}")
             if time.monotonic() > deadline:
-                raise DeviceTimeout(self.name, operation, f"not on target after {timeout} s")
+                raise DeviceTimeout(self.name, operation, f"{not_yet} after {timeout} s")
             time.sleep(self.poll_interval)
 
     def wait_in_position(self, timeout: float = 30.0) -> float:
         self._wait(lambda: self._axis_flag("ONT?"), timeout, "wait_in_position")
         return self.position()
 
-    def home(self, timeout: float = 30.0) -> None:
-        self._command(f"FRF {self.axis}", "home (FRF)")
-        self._wait(lambda: self._axis_flag("FRF?") and self._axis_flag("ONT?"), timeout, "home (FRF)")
+    def home(self, timeout: float = 30.0, *, operation: str = "home (FRF)") -> None:
+        """Reference move to the reference mark (the true zero); waits until referenced and on target."""
+        self._command(f"FRF {self.axis}", operation)
+        self._wait(lambda: self._axis_flag("FRF?") and self._axis_flag("ONT?"), timeout, operation,
+                   "not referenced")
 
     def position(self) -> float:
         return math.radians(self._axis_number("POS?"))

@@ -5,11 +5,17 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
-from drivers._errors import DeviceFault
+from drivers._errors import DeviceFault, MotionRefused
 
 
 class TableFault(DeviceFault):
-    """The table reports an alarm or error of its own (drive fault, following error, ...)."""
+    """The table reports an alarm or error of its own (drive fault, following error, servo off, ...)."""
+
+
+class CommandRefused(MotionRefused):
+    """The table received a command and refused its value (a target beyond its soft limits, a speed
+    out of range): nothing moved, and the table is as healthy as before (Modbus exception 3, GCS
+    errors 7 and 17)."""
 
 
 @dataclass(frozen=True)
@@ -26,7 +32,9 @@ class RotaryTable(Protocol):
     name: str
 
     def open(self) -> None:
-        """Connect (every wait bounded); raises ``DeviceConnectionError`` or ``DeviceTimeout``."""
+        """Connect and make the table usable (every wait bounded): servo on and, if unreferenced, the
+        reference move (unless the settings say ``reference_on_open: false``). Raises
+        ``DeviceConnectionError``, ``DeviceTimeout`` or ``TableFault`` naming the step that failed."""
         ...
 
     def close(self) -> None:

@@ -3,12 +3,22 @@
 Device units (counts, velocity units, opcodes) appear only at the registers, taken from the
 ``RegisterMap`` in the settings; the public API is in radians and rad/s.
 
+Opening
+-------
+``open()`` connects, reads the status register (which proves the drive answers with this unit id and
+map) and, unless ``reference_on_open`` is off, makes the table usable as a real set-up must: the
+servo on (the drive powers on disabled) and the reference move if the table is unreferenced, each
+within its own timeout. A drive alarm present at open is a ``TableFault``: clearing it is the
+operator's decision, not the driver's.
+
 Error handling
 --------------
 - A Modbus exception response (pymodbus 3.16 *returns* an ``ExceptionResponse``, function code | 0x80)
-  becomes ``TableFault`` for code 4 (device failure: the drive refused, e.g. alarm present),
-  a retry then ``DeviceTimeout`` for 5/6 (acknowledge/busy) and 10/11 (gateway), else ``ProtocolError``;
-  every message names the register and the code.
+  becomes ``CommandRefused`` for code 3 (illegal data value: a target beyond the soft limits, a speed
+  out of range; nothing moved), ``TableFault`` for code 4 (device failure: the drive cannot act now,
+  e.g. alarm present, servo off, unreferenced; the message says which), a retry then
+  ``DeviceTimeout`` for 5/6 (acknowledge/busy) and 10/11 (gateway, or no device with this unit id
+  behind a TCP address), else ``ProtocolError``; every message names the register and the code.
 - No answer (``ModbusIOException``) becomes ``DeviceTimeout``; if bytes did arrive but formed no valid
   frame (garbage, truncation, bad CRC) it becomes ``ProtocolError``. Both are retried ``retries``
   times, after a guard wait and a flush of stale input, so a late answer is never taken for a new one.
@@ -29,7 +39,7 @@ from pymodbus.exceptions import ConnectionException, ModbusException, ModbusIOEx
 from pymodbus.pdu import ExceptionResponse
 
 from drivers._errors import DeviceConnectionError, DeviceError, DeviceTimeout, MotionRefused, ProtocolError
-from drivers.rotary_table._interface import TableFault, TableState
+from drivers.rotary_table._interface import CommandRefused, TableFault, TableState
 from drivers.rotary_table._settings import ModbusRtuSettings, ModbusTcpSettings
 
 # pymodbus logs each late or missing reply as a warning of its own; this driver turns the same
@@ -41,14 +51,14 @@ logging.getLogger("pymodbus").addHandler(logging.NullHandler())
 EXCEPTION_NAMES = {
     1: "illegal function",
     2: "illegal data address",
-    3: "illegal data value",
-    4: "device failure",
+    3: "illegal data value: the drive refused the value",
+    4: "device failure: the drive cannot act now",
     5: "acknowledge (busy, try later)",
     6: "device busy",
     7: "negative acknowledge",
     8: "memory parity error",
     10: "gateway path unavailable",
-    11: "gateway target failed to respond",
+    11: "gateway target failed to respond: no device with this unit id there?",
 }
 _RETRYABLE_CODES = {5, 6, 10, 11}
 
@@ -97,7 +107,18 @@ class ModbusTable:
         return data
 
     def open(self) -> None:
-        """Connect and read the status register (proves the drive answers with this unit id and map)."""
+        """Connect, check the drive answers, then (``reference_on_open``) servo on and reference move.
+
+        Raises
+        ------
+        DeviceConnectionError, DeviceTimeout, ProtocolError
+            The drive cannot be reached or does not answer with this unit id and register map.
+        TableFault
+            An alarm is present, or the drive refused the servo-on or the reference move.
+        DeviceTimeout
+            The servo did not come on within ``servo_timeout``, or the reference move did not end
+            within ``reference_timeout`` (the operation names which).
+        """
         self.close()
         client = self._make_client()
         try:
@@ -110,10 +131,26 @@ class ModbusTable:
             raise DeviceConnectionError(self.name, f"open ({self.endpoint})", "the drive cannot be reached")
         self._client = client
         try:
-            self._read(self.map.status, 1)  # proves the drive answers with this unit id and map
+            status = self._status()  # proves the drive answers with this unit id and map
+            if self.settings.reference_on_open:
+                self._make_ready(status)
         except DeviceError:
             self.close()
             raise
+
+    def _make_ready(self, status: int) -> None:
+        """Servo on, then the reference move if unreferenced, each bounded by its timeout."""
+        bits, settings = self.map.status_bits, self.settings
+        if status >> bits.alarm & 1 or status >> bits.drive_fault & 1:
+            alarm = self._read(self.map.alarm, 1)[0]
+            raise TableFault(self.name, "open", f"drive alarm 0x{alarm:04x} ({self.map.alarm_bits.describe(alarm)}) "
+                             "present: clear its cause, then reset the alarm")
+        if not status >> bits.enabled & 1:
+            self._command(self.map.opcodes.enable, "open: servo on")
+            self._wait(lambda s: bool(s >> bits.enabled & 1), settings.servo_timeout, "open: servo on",
+                       "the servo is not on")
+        if not status >> bits.homed & 1:
+            self.home(settings.reference_timeout, operation="open: reference move")
 
     def close(self) -> None:
         if self._client is not None:
@@ -190,8 +227,10 @@ class ModbusTable:
                     last = DeviceTimeout(self.name, f"{operation} {register}", text)
                     time.sleep(self.poll_interval)
                     continue
+                if code == 3:
+                    raise CommandRefused(self.name, f"{operation} {register}", text)
                 if code == 4:
-                    raise TableFault(self.name, f"{operation} {register}", text + self._alarm_text())
+                    raise TableFault(self.name, f"{operation} {register}", text + self._state_text())
                 raise ProtocolError(self.name, f"{operation} {register}", text)
             return response
         assert last is not None
@@ -205,12 +244,20 @@ class ModbusTable:
             raise DeviceConnectionError(self.name, f"reconnect ({self.endpoint})", "the drive cannot be reached")
         self._client = client
 
-    def _alarm_text(self) -> str:
-        """The drive's alarm register in words, best effort (used inside an error path)."""
+    def _state_text(self) -> str:
+        """Why the drive cannot act, in words, best effort (used inside an error path): its alarm, or
+        servo off, or unreferenced."""
         try:
-            response = self._client.read_holding_registers(self.map.alarm, count=1, device_id=self.unit)
-            if not response.isError() and response.registers[0]:
-                return f"; drive alarm: {self.map.alarm_bits.describe(response.registers[0])}"
+            alarm = self._client.read_holding_registers(self.map.alarm, count=1, device_id=self.unit)
+            if not alarm.isError() and alarm.registers[0]:
+                return f"; drive alarm: {self.map.alarm_bits.describe(alarm.registers[0])}"
+            status = self._client.read_holding_registers(self.map.status, count=1, device_id=self.unit)
+            if not status.isError():
+                bits, word = self.map.status_bits, status.registers[0]
+                if not word >> bits.enabled & 1:
+                    return "; the servo is off"
+                if not word >> bits.homed & 1:
+                    return "; the table is not referenced (home it)"
         except Exception:
             pass
         return ""
@@ -224,11 +271,12 @@ class ModbusTable:
                                 f"asked for {count} registers, got {len(registers)}")
         return registers[:count]
 
-    def _write(self, address: int, values: list[int]) -> None:
+    def _write(self, address: int, values: list[int], operation: str) -> None:
+        what = f"{operation}: write"
         if len(values) == 1:
-            self._transact("write", address, lambda c: c.write_register(address, values[0], device_id=self.unit))
+            self._transact(what, address, lambda c: c.write_register(address, values[0], device_id=self.unit))
         else:
-            self._transact("write", address, lambda c: c.write_registers(address, values, device_id=self.unit))
+            self._transact(what, address, lambda c: c.write_registers(address, values, device_id=self.unit))
 
     # ----------------------------------------------------------------------------- table API
     def _check_no_alarm(self, operation: str) -> None:
@@ -242,10 +290,10 @@ class ModbusTable:
         units = self.map.rad_s_to_velocity(speed)
         if not math.isfinite(speed) or speed <= 0 or units <= 0 or units > 0xFFFF:
             raise MotionRefused(self.name, operation, f"speed {speed!r} rad/s is not a usable positive speed")
-        self._write(self.map.velocity, [units])
+        self._write(self.map.velocity, [units], operation)
 
     def _command(self, opcode: int, operation: str) -> None:
-        self._write(self.map.control, [opcode])
+        self._write(self.map.control, [opcode], operation)
 
     def move_absolute(self, angle: float, speed: float | None = None) -> None:
         operation = f"move_absolute({angle!r})"
@@ -256,7 +304,7 @@ class ModbusTable:
             raise MotionRefused(self.name, operation, "target outside the drive's 32-bit position range")
         self._check_no_alarm(operation)
         self._set_speed(speed, operation)
-        self._write(self.map.position_command, self.map.split32(counts))
+        self._write(self.map.position_command, self.map.split32(counts), operation)
         self._command(self.map.opcodes.move_absolute, operation)
         self._target = counts
 
@@ -272,7 +320,8 @@ class ModbusTable:
     def _status(self) -> int:
         return self._read(self.map.status, 1)[0]
 
-    def _wait(self, done: Callable[[int], bool], timeout: float, operation: str) -> None:
+    def _wait(self, done: Callable[[int], bool], timeout: float, operation: str,
+              not_yet: str = "not in position") -> None:
         bits = self.map.status_bits
         deadline = time.monotonic() + timeout
         while True:
@@ -285,7 +334,7 @@ class ModbusTable:
             if done(status):
                 return
             if time.monotonic() > deadline:
-                raise DeviceTimeout(self.name, operation, f"not in position after {timeout} s (status 0x{status:04x})")
+                raise DeviceTimeout(self.name, operation, f"{not_yet} after {timeout} s (status 0x{status:04x})")
             time.sleep(self.poll_interval)
 
     def wait_in_position(self, timeout: float = 30.0) -> float:
@@ -293,12 +342,13 @@ class ModbusTable:
         self._wait(lambda s: bool(s >> bits.in_position & 1) and not s >> bits.moving & 1, timeout, "wait_in_position")
         return self.position()
 
-    def home(self, timeout: float = 30.0) -> None:
+    def home(self, timeout: float = 30.0, *, operation: str = "home") -> None:
+        """Seek the reference mark (the true zero) and wait until the drive reports it homed."""
         bits = self.map.status_bits
-        self._check_no_alarm("home")
-        self._command(self.map.opcodes.home, "home")
+        self._check_no_alarm(operation)
+        self._command(self.map.opcodes.home, operation)
         self._wait(lambda s: bool(s >> bits.homed & 1) and bool(s >> bits.in_position & 1)
-                   and not s >> bits.homing & 1, timeout, "home")
+                   and not s >> bits.homing & 1, timeout, operation, "not referenced")
         self._target = 0
 
     def position(self) -> float:

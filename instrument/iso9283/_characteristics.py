@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -153,7 +154,7 @@ def pose_repeatability(
     l_mean = float(distances.mean())
     s_l = float(distances.std(ddof=1))
     s_angles = array[:, 3:].std(axis=0, ddof=1)
-    result = dict(
+    result: dict[str, Any] = dict(
         n=n,
         barycentre=_barycentre(array),
         l_mean=l_mean,
@@ -196,7 +197,7 @@ def pose_accuracy(
     centre = array.mean(axis=0)
     offsets = centre[:3] - target[:3]
     angle_errors = wrap_angle(centre[3:] - target[3:])
-    result = dict(
+    result: dict[str, Any] = dict(
         n=n,
         barycentre=_barycentre(array),
         commanded=target,

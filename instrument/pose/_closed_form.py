@@ -14,7 +14,9 @@ Derived here from the geometry (the printed eq. 14 has garbled subscripts):
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
+from typing import cast
 
 import numpy as np
 
@@ -32,7 +34,7 @@ def _as_crosses(measurements: Mapping[str, object], geometry: Geometry) -> dict[
     ):
         if set(measurements) != set(SCREEN_NAMES):
             return observe_crosses(measurements, geometry)  # raises the missing-screen error
-        return dict(measurements)
+        return {name: cast(ScreenCross, cross) for name, cross in measurements.items()}
     return observe_crosses(measurements, geometry)
 
 
@@ -42,11 +44,12 @@ def cross_turn(cross: ScreenCross, geometry: Geometry) -> float:
     The mean of both stripes' signed angles from their nominal directions (the paper's averaging).
     """
     nominal = nominal_directions(geometry.screens[cross.screen])
-    angles = []
+    total = 0.0
     for fan in FANS[cross.screen]:
-        n0, d = nominal[fan], cross.lines[fan].direction
-        angles.append(np.arctan2(n0[0] * d[1] - n0[1] * d[0], n0 @ d))
-    return float(np.mean(angles))
+        n0, n1 = float(nominal[fan][0]), float(nominal[fan][1])
+        d0, d1 = (float(c) for c in cross.lines[fan].direction)
+        total += math.atan2(n0 * d1 - n1 * d0, n0 * d0 + n1 * d1)
+    return total / 2.0
 
 
 def small_motion_pose(measurements: Mapping[str, object], geometry: Geometry, *, lever: str = "paper") -> Pose:
@@ -68,31 +71,36 @@ def small_motion_pose(measurements: Mapping[str, object], geometry: Geometry, *,
     """
     if lever not in ("paper", "exact"):
         raise ValueError(f"lever: expected 'paper' or 'exact', got {lever!r}")
-    crosses = _as_crosses(measurements, geometry)
+    translation, rotation, _ = closed_form(_as_crosses(measurements, geometry), geometry, lever)
+    return Pose(translation, rotation)
+
+
+def closed_form(crosses: Mapping[str, ScreenCross], geometry: Geometry, lever: str = "exact"):
+    """(translation, rotation, (α, θ, γ)) of the closed form, from crosses already on the screens."""
     alpha, theta, gamma = (cross_turn(crosses[name], geometry) for name in SCREEN_NAMES)
     rotation = euler_to_matrix(alpha, theta, gamma)
     rows, rhs = [], []
     estimates: dict[int, list[float]] = {0: [], 1: [], 2: []}
     for name in SCREEN_NAMES:
         k = AXIS_INDEX[name]
-        beam = rotation[:, k]
+        beam = rotation[:, k].tolist()
         if abs(beam[k]) < 1e-6:
             raise PoseError(f"screen {name!r}: the beam runs parallel to the screen")
-        hit = crosses[name].center_m
+        hit = crosses[name].center_m.tolist()
         for i in range(3):
             if i == k:
                 continue
             slope = beam[i] / beam[k]  # direction cosine ratio r_ik / r_kk
             estimates[i].append(hit[i] - hit[k] * slope)
-            row = np.zeros(3)
+            row = [0.0, 0.0, 0.0]
             row[i], row[k] = 1.0, -slope
             rows.append(row)
             rhs.append(hit[i] - hit[k] * slope)
     if lever == "paper":
-        translation = np.array([np.mean(estimates[i]) for i in range(3)])
+        translation = np.array([sum(estimates[i]) / len(estimates[i]) for i in range(3)])
     else:
         design = np.array(rows)
         translation = np.linalg.solve(
             design.T @ design, design.T @ np.array(rhs)
         )  # well conditioned: rows ≈ unit vectors
-    return Pose(translation, rotation)
+    return translation, rotation, (alpha, theta, gamma)

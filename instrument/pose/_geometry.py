@@ -232,6 +232,7 @@ class Geometry:
     """The three screens, keyed "x", "y", "z"."""
 
     screens: Mapping[str, Screen]
+    cache: dict = field(default_factory=dict, init=False, repr=False, compare=False)  # derived arrays (solver)
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> Geometry:

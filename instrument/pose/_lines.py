@@ -23,8 +23,9 @@ FAN_AXES: dict[str, tuple[int, int]] = {
     fan: (AXIS_INDEX[fan[1]], 3 - AXIS_INDEX[fan[0]] - AXIS_INDEX[fan[1]]) for pair in FANS.values() for fan in pair
 }
 _MAX_MATCH_ANGLE = np.radians(40.0)
+_MATCH_COSINE = float(np.cos(_MAX_MATCH_ANGLE))
+_PARALLEL_COSINE = float(np.cos(np.radians(20.0)))
 _IDENTITY, _ZERO = np.eye(3), np.zeros(3)
-_ENDS = np.array([[-1.0], [1.0]])
 _DISTORTED_SAMPLES = np.linspace(-1.0, 1.0, 9)[:, None]
 
 
@@ -114,32 +115,66 @@ def intersect(first: ScreenLine, second: ScreenLine) -> np.ndarray:
     return first.point + ((delta[0] * d - delta[1] * b) / determinant) * first.direction
 
 
-def _stripe_to_screen(stripe, screen: Screen, label: str) -> ScreenLine:
-    point = np.asarray(stripe.point, dtype=float)
-    direction = np.asarray(stripe.direction, dtype=float)
-    if point.shape != (2,) or direction.shape != (2,) or not math.isfinite(point.sum() + direction.sum()):
+def _finite_pair(value) -> tuple[float, float] | None:
+    """(a, b) as floats when ``value`` is a finite pair of numbers, else None."""
+    try:
+        a, b = (float(c) for c in value)
+    except (TypeError, ValueError):
+        return None
+    return (a, b) if math.isfinite(a) and math.isfinite(b) else None
+
+
+def _homography_terms(screen: Screen) -> tuple[float, ...]:
+    """The pixel → screen homography's nine entries as Python floats (cached per screen): two
+    points per stripe are mapped faster in plain arithmetic than through small numpy arrays."""
+    terms = screen.cache.get("homography_terms")
+    if terms is None:
+        terms = tuple(float(v) for v in screen.pixel_to_screen.ravel())
+        screen.cache["homography_terms"] = terms
+    return terms
+
+
+def _stripe_to_screen(stripe, screen: Screen, label: str) -> tuple[float, float, float, float, float]:
+    """One fitted image stripe → (point u, point v, direction u, direction v, half length) on the
+    screen, metres: the segment the vision fitted, about one cross-section per pixel."""
+    point, direction = _finite_pair(stripe.point), _finite_pair(stripe.direction)
+    if point is None or direction is None:
         raise PoseError(f"screen {screen.name!r}: {label} stripe has a non-finite or malformed point/direction")
-    norm = float(np.linalg.norm(direction))
+    norm = math.hypot(*direction)
     if norm < 1e-9:
         raise PoseError(f"screen {screen.name!r}: {label} stripe has a zero direction")
-    direction = direction / norm
-    # The segment the vision fitted: about one cross-section per pixel along the stripe.
     half_px = max(float(stripe.sections), 2.0) / 2.0
-    # A homography maps lines to lines exactly: two ends suffice unless there is distortion.
-    steps = _DISTORTED_SAMPLES if screen.distortion is not None else _ENDS
-    uv = screen.pixels_to_screen(point + (half_px * steps) * direction)
-    samples = len(steps)
+    dx, dy = direction[0] / norm * half_px, direction[1] / norm * half_px
+    horizon = f"screen {screen.name!r}: {label} stripe maps to infinity (beyond the homography's horizon)"
+    if screen.distortion is None:  # a homography maps lines to lines exactly: two ends suffice
+        h00, h01, h02, h10, h11, h12, h20, h21, h22 = _homography_terms(screen)
+        ends = []
+        for x, y in ((point[0] - dx, point[1] - dy), (point[0] + dx, point[1] + dy)):
+            w = h20 * x + h21 * y + h22
+            if abs(w) < 1e-300:
+                raise PoseError(horizon)
+            ends.append(((h00 * x + h01 * y + h02) / w, (h10 * x + h11 * y + h12) / w))
+        (u0, v0), (u1, v1) = ends
+        length = math.hypot(u1 - u0, v1 - v0)
+        if not (math.isfinite(length) and length > 0.0):
+            raise PoseError(horizon)
+        return 0.5 * (u0 + u1), 0.5 * (v0 + v1), (u1 - u0) / length, (v1 - v0) / length, 0.5 * length
+    uv = screen.pixels_to_screen(np.asarray(point) + _DISTORTED_SAMPLES * np.array([dx, dy]))
     if not math.isfinite(uv.sum()):
-        raise PoseError(f"screen {screen.name!r}: {label} stripe maps to infinity (beyond the homography's horizon)")
-    if samples == 2:
-        span = uv[1] - uv[0]
-        length = float(np.hypot(span[0], span[1]))
-        return ScreenLine((uv[0] + uv[1]) / 2.0, span / length, length / 2.0)
+        raise PoseError(horizon)
     centroid = uv.mean(axis=0)
     _, _, vt = np.linalg.svd(uv - centroid)  # straight line through the slightly curved image
-    line_direction = vt[0]
-    along = (uv - centroid) @ line_direction
-    return ScreenLine(centroid, line_direction, float(along.max() - along.min()) / 2.0)
+    along = (uv - centroid) @ vt[0]
+    return float(centroid[0]), float(centroid[1]), float(vt[0][0]), float(vt[0][1]), float(np.ptp(along)) / 2.0
+
+
+def _nominal_pairs(screen: Screen) -> tuple[tuple[float, float], tuple[float, float]]:
+    cached = screen.cache.get("nominal_pairs")
+    if cached is None:
+        nominal = nominal_directions(screen)
+        cached = tuple((float(nominal[fan][0]), float(nominal[fan][1])) for fan in FANS[screen.name])
+        screen.cache["nominal_pairs"] = cached
+    return cached
 
 
 def observe_cross(measurement, screen: Screen) -> ScreenCross:
@@ -150,38 +185,48 @@ def observe_cross(measurement, screen: Screen) -> ScreenCross:
     is off the image, the stripes are unusable, or they cannot be matched unambiguously.
     """
     name = screen.name
-    center_px = np.asarray(getattr(measurement, "center", np.full(2, np.nan)), dtype=float)
-    if center_px.shape != (2,) or not np.all(np.isfinite(center_px)):
-        raise PoseError(f"screen {name!r}: cross centre is not a finite (x, y) pixel point: {center_px.tolist()}")
+    center_px = _finite_pair(getattr(measurement, "center", None))
+    if center_px is None:
+        shown = np.asarray(getattr(measurement, "center", np.full(2, np.nan)), dtype=float).tolist()
+        raise PoseError(f"screen {name!r}: cross centre is not a finite (x, y) pixel point: {shown}")
     if not screen.contains_pixel(center_px):
+        width, height = screen.size_px or (0, 0)  # contains_pixel is False only with a known size
         raise CrossOffScreenError(
             f"screen {name!r}: cross centre ({center_px[0]:.1f}, {center_px[1]:.1f}) px is off the "
-            f"{screen.size_px[0]}×{screen.size_px[1]} px image"
+            f"{width}×{height} px image"
         )
-    stripes = [
+    stripes = (
         _stripe_to_screen(measurement.horizontal, screen, "horizontal"),
         _stripe_to_screen(measurement.vertical, screen, "vertical"),
-    ]
-    if abs(float(stripes[0].direction @ stripes[1].direction)) > np.cos(np.radians(20.0)):
+    )
+    if abs(stripes[0][2] * stripes[1][2] + stripes[0][3] * stripes[1][3]) > _PARALLEL_COSINE:
         raise CrossOffScreenError(f"screen {name!r}: the two stripes are nearly parallel on the screen")
-    nominal = nominal_directions(screen)
+    nominal = _nominal_pairs(screen)
+    cosines = [[s[2] * n[0] + s[3] * n[1] for n in nominal] for s in stripes]
+    straight = abs(cosines[0][0]) + abs(cosines[1][1]) >= abs(cosines[0][1]) + abs(cosines[1][0])
+    order = (0, 1) if straight else (1, 0)
     fans = FANS[name]
-    cosines = np.array([[abs(float(s.direction @ nominal[f])) for f in fans] for s in stripes])
-    order = (0, 1) if cosines[0, 0] + cosines[1, 1] >= cosines[0, 1] + cosines[1, 0] else (1, 0)
     lines: dict[str, ScreenLine] = {}
-    for stripe_index, fan in zip(order, fans):
-        stripe = stripes[stripe_index]
-        cosine = float(stripe.direction @ nominal[fan])
-        if abs(cosine) < np.cos(_MAX_MATCH_ANGLE):
+    oriented = []
+    for fan_index, (stripe_index, fan) in enumerate(zip(order, fans)):
+        pu, pv, du, dv, half_length = stripes[stripe_index]
+        cosine = cosines[stripe_index][fan_index]
+        if abs(cosine) < _MATCH_COSINE:
             raise StripeMatchError(
                 f"screen {name!r}: stripe at {np.degrees(np.arccos(min(abs(cosine), 1.0))):.1f}° from fan "
                 f"{fan!r}'s nominal direction; stripes can be matched to fans only within "
                 f"{np.degrees(_MAX_MATCH_ANGLE):.0f}°"
             )
-        direction = stripe.direction if cosine > 0 else -stripe.direction
-        lines[fan] = ScreenLine(stripe.point, direction, stripe.half_length)
-    center = intersect(lines[fans[0]], lines[fans[1]])
-    return ScreenCross(name, lines, center, screen.to_frame(center)[0])
+        sign = 1.0 if cosine > 0 else -1.0
+        oriented.append((pu, pv, sign * du, sign * dv))
+        lines[fan] = ScreenLine(np.array([pu, pv]), np.array([sign * du, sign * dv]), half_length)
+    # the intersection of the two lines (Cramer's rule; not parallel: checked above)
+    (p0u, p0v, d0u, d0v), (p1u, p1v, d1u, d1v) = oriented
+    determinant = d1u * d0v - d0u * d1v
+    along = ((p1u - p0u) * -d1v + (p1v - p0v) * d1u) / determinant
+    cu, cv = p0u + along * d0u, p0v + along * d0v
+    center_m = screen.origin + cu * screen.u + cv * screen.v
+    return ScreenCross(name, lines, np.array([cu, cv]), center_m)
 
 
 def observe_crosses(measurements: Mapping[str, object], geometry: Geometry) -> dict[str, ScreenCross]:

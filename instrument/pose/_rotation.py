@@ -6,6 +6,7 @@ A ``Pose`` maps coordinates in the moving frame to the reference frame: p_ref = 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,8 +31,19 @@ def rot_z(angle: float) -> np.ndarray:
 
 
 def euler_to_matrix(alpha: float, theta: float, gamma: float) -> np.ndarray:
-    """R = Rz(γ)·Ry(θ)·Rx(α): rotate about fixed X by α, then fixed Y by θ, then fixed Z by γ."""
-    return rot_z(gamma) @ rot_y(theta) @ rot_x(alpha)
+    """R = Rz(γ)·Ry(θ)·Rx(α): rotate about fixed X by α, then fixed Y by θ, then fixed Z by γ.
+
+    Written out (method.md eq. 4) rather than as three matrix products: this runs once per solve.
+    """
+    ca, sa, ct, st = math.cos(alpha), math.sin(alpha), math.cos(theta), math.sin(theta)
+    cg, sg = math.cos(gamma), math.sin(gamma)
+    return np.array(
+        [
+            [cg * ct, cg * st * sa - sg * ca, cg * st * ca + sg * sa],
+            [sg * ct, sg * st * sa + cg * ca, sg * st * ca - cg * sa],
+            [-st, ct * sa, ct * ca],
+        ]
+    )
 
 
 def euler_to_matrix_with_derivatives(alpha: float, theta: float, gamma: float):
@@ -161,3 +173,16 @@ class Pose:
         """Angle of the relative rotation between two poses, rad."""
         # Via the rotation vector: arccos of the trace loses precision below ~1e-8 rad.
         return float(Rotation.from_matrix(self.rotation.T @ other.rotation).magnitude())
+
+
+def trusted_pose(translation: np.ndarray, euler: np.ndarray) -> Pose:
+    """A ``Pose`` from finite (t, α, θ, γ) without ``__post_init__``'s checks (the solver's result:
+    a rotation built from Euler angles is orthonormal by construction). Package-internal."""
+    pose = object.__new__(Pose)
+    t = np.array(translation, dtype=float)
+    r = euler_to_matrix(float(euler[0]), float(euler[1]), float(euler[2]))
+    t.setflags(write=False)
+    r.setflags(write=False)
+    object.__setattr__(pose, "translation", t)
+    object.__setattr__(pose, "rotation", r)
+    return pose

@@ -1,6 +1,8 @@
 """Image → cross: pre-processing, IGCF sub-pixel stripe centres, bisquare line fits (method.md §2).
 
-Main entry point :func:`locate_cross`; the building blocks are public too:
+Main entry points :func:`locate_cross` (one frame; with ``prior=`` the last result, it tracks the
+cross instead of searching the whole frame) and :func:`locate_crosses` (several frames at once, e.g.
+the three cameras of one trigger); the building blocks are public too:
 :func:`igcf_centers` (vectorised IGCF over many cross-sections), :func:`fit_line_bisquare`
 (robust line fit) and :func:`find_stripes` (coarse stripe detection).
 """
@@ -8,7 +10,7 @@ Main entry point :func:`locate_cross`; the building blocks are public too:
 from instrument.vision._detect import CoarseLine, Detection, find_stripes
 from instrument.vision._igcf import SectionCentres, half_window_for_width, igcf_centers
 from instrument.vision._linefit import LineFit, fit_line_bisquare
-from instrument.vision._locate import locate_cross
+from instrument.vision._locate import locate_cross, locate_crosses
 from instrument.vision._types import CrossMeasurement, CrossNotFound, StripeLine
 
 __all__ = [
@@ -24,4 +26,5 @@ __all__ = [
     "half_window_for_width",
     "igcf_centers",
     "locate_cross",
+    "locate_crosses",
 ]

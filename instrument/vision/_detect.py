@@ -244,8 +244,9 @@ def find_stripes(img, saturation, threshold=None) -> Detection:
         raise CrossNotFound(
             f"only one stripe found ({found}); no {missing} stripe of at least {MIN_STRIPE_PX:.0f} px"
         )
-    h = _to_full(_small_line(*horizontal[0], vertical=False), hough_scale)
-    v = _to_full(_small_line(*vertical[0], vertical=True), hough_scale)
+    (h_rho, h_theta, h_votes), (v_rho, v_theta, v_votes) = horizontal[0], vertical[0]
+    h = _to_full(_small_line(h_rho, h_theta, h_votes, vertical=False), hough_scale)
+    v = _to_full(_small_line(v_rho, v_theta, v_votes, vertical=True), hough_scale)
     radius = max(REFINE_MIN_RADIUS, int(np.ceil(16.0 / factor)) + 1)
     h, v = _refine(small, h, v, level, background, radius), _refine(small, v, h, level, background, radius)
 

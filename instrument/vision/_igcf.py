@@ -119,15 +119,30 @@ def _powers(h_max):
 def _brightest_runs(band):
     """Peak value, and middle and length of the run of pixels at the peak, per section (axis 0).
 
-    The pixels equal to the section's maximum are counted and their mean index taken with one
-    small matrix product — far cheaper than an argmax along the strided axis. For a contiguous
-    run (a saturated plateau, or the single peak pixel) the mean index is the run's middle.
+    The pixels equal to the section's maximum are counted, and their indices summed, by integer
+    reductions across the rows — far cheaper than an argmax along the strided axis. For a
+    contiguous run (a saturated plateau, or the single peak pixel) the mean index is the run's middle.
     """
     peak = band.max(axis=0)
-    at_peak = (band == peak[None, :]).astype(np.float32)
-    moments = np.stack([np.ones(band.shape[0], np.float32), np.arange(band.shape[0], dtype=np.float32)])
-    count, index_sum = moments @ at_peak
-    return peak, index_sum / count, count
+    at_peak = band == peak[None, :]
+    length = band.shape[0]
+    count = at_peak.sum(axis=0, dtype=np.uint16)
+    rows = _row_indices(length)
+    index_sum = np.multiply(at_peak, rows, dtype=rows.dtype).sum(axis=0, dtype=np.uint32)
+    count_f = count.astype(np.float32)
+    return peak, index_sum / count_f, count_f
+
+
+_ROWS: dict[int, np.ndarray] = {}
+
+
+def _row_indices(length: int) -> np.ndarray:
+    """0 … length−1 as a column, in the smallest unsigned type that holds them (cached)."""
+    rows = _ROWS.get(length)
+    if rows is None:
+        rows = np.arange(length, dtype=np.uint8 if length <= 256 else np.uint32)[:, None]
+        _ROWS[length] = rows
+    return rows
 
 
 def igcf_band(band, valid, background, saturation, half_window, min_amplitude):
@@ -195,23 +210,27 @@ def igcf_band(band, valid, background, saturation, half_window, min_amplitude):
     level *= inv_scale[None, :]
     positive = level > 0
     use = positive if use is None else use & positive
-    level[~use] = 0.0
-    weight = level * level
-    level[~use] = 1.0  # ln 1 = 0: unused pixels add nothing (their weight is 0 anyway)
-    weighted_log = weight * np.log(level)
+    # weight = I² and weight·ln I side by side, so one matrix product gives all eight moment sums
+    window_rows = level.shape[0]
+    sums_input = np.empty((window_rows, 2 * n), np.float32)
+    weight, weighted_log = sums_input[:, :n], sums_input[:, n:]
+    np.copyto(level, 1.0, where=~use)  # ln 1 = 0 and the weight below is 0: unused pixels add nothing
+    np.multiply(level, level, out=weight)
+    weight *= use
+    np.log(level, out=weighted_log)
+    weighted_log *= weight
 
-    powers = _powers(h_max)
-    s0, s1, s2, s3, s4 = (powers @ weight).astype(float)  # each (N,)
-    z0, z1, z2 = (powers[:3] @ weighted_log).astype(float)
+    sums = (_powers(h_max) @ sums_input).astype(float)
+    s0, s1, s2, s3, s4 = sums[:, :n]
+    z0, z1, z2 = sums[:3, n:]
     n_used = use.view(np.uint8).sum(axis=0, dtype=np.uint8)
-    # Cramer's rule on the 3×3 normal equations; centre = −a1/(2·a2) needs only det1, det2, det
+    # Cramer's rule on the 3×3 normal equations; centre = −a1/(2·a2) needs only det1 and det2 (the
+    # determinant itself is positive: a weighted Gram matrix of ≥ 3 distinct points)
     m2, m3, mz = s1 * s4 - s3 * s2, s1 * s3 - s2 * s2, s1 * z2 - z1 * s2  # shared minors
-    det = s0 * (s2 * s4 - s3 * s3) - s1 * m2 + s2 * m3
     det1 = s0 * (z1 * s4 - s3 * z2) - z0 * m2 + s2 * mz
     det2 = s0 * (s2 * z2 - z1 * s3) - s1 * mz + z0 * m3
-    fittable = (n_used >= 3) & (det > 0) & (det2 < 0)  # det2/det = a2 < 0: a peak, not a dip
-    safe_det2 = np.where(fittable, det2, -1.0)
-    offset = -det1 / (2.0 * safe_det2)
+    fittable = (n_used >= 3) & (det2 < 0)  # det2/det = a2 < 0: a peak, not a dip
+    offset = det1 / (-2.0 * np.where(fittable, det2, -1.0))
     ok = contained & fittable & (np.abs(offset) <= h_sec + 0.5)
     ok &= amplitude >= np.maximum(min_amplitude, np.finfo(float).tiny)
     center = np.where(ok, coarse + offset, np.nan)

@@ -36,22 +36,36 @@ class LineFit(NamedTuple):
 
 
 def _median(x):
-    """Median by partial sort (np.median's overhead dominates on a few hundred points)."""
+    """Median by partial sort (np.median's overhead dominates on a few hundred points).
+
+    One partition at n // 2; for an even count the lower middle is the largest of the lower part
+    (a second partition point would cost three times as much).
+    """
     n = len(x)
     k = n // 2
+    part = np.partition(x, k)
     if n % 2:
-        return float(np.partition(x, k)[k])
-    part = np.partition(x, (k - 1, k))
-    return 0.5 * float(part[k - 1] + part[k])
+        return float(part[k])
+    return 0.5 * float(part[k] + part[:k].max())
+
+
+def _median_in_place(x):
+    """:func:`_median` that reorders ``x`` instead of copying it."""
+    n = len(x)
+    k = n // 2
+    x.partition(k)
+    if n % 2:
+        return float(x[k])
+    return 0.5 * float(x[k] + x[:k].max())
 
 
 def _weighted_line(u, v, w):
     """Weighted least squares of v = a + b·u (u already centred near 0)."""
-    sw = w.sum()
-    su = w @ u
-    sv = w @ v
-    suu = w @ (u * u)
-    suv = w @ (u * v)
+    return _line_from_sums(w.sum(), w @ u, w @ v, w @ (u * u), w @ (u * v))
+
+
+def _line_from_sums(sw, su, sv, suu, suv):
+    """(a, b) of v = a + b·u from the weighted sums Σw, Σwu, Σwv, Σwu², Σwuv."""
     det = sw * suu - su * su
     if not det > 0:
         raise ValueError("line fit is degenerate: fewer than two distinct points carry weight")
@@ -97,23 +111,48 @@ def fit_line_bisquare(points, *, independent=0, tuning=BISQUARE_TUNING, tol=1e-7
         raise ValueError(f"points must have shape (N, 2), got {pts.shape}")
     if independent not in (0, 1):
         raise ValueError("independent must be 0 (fit y(x)) or 1 (fit x(y))")
-    u_raw = pts[:, independent]
-    v = pts[:, 1 - independent]
-    if len(u_raw) < 2:
+    if len(pts) < 2:
         raise ValueError("line fit needs at least two points")
+    return bisquare_line(pts[:, independent], pts[:, 1 - independent], tuning=tuning, tol=tol, max_iter=max_iter)
+
+
+def bisquare_line(independent, dependent, *, tuning=BISQUARE_TUNING, tol=1e-7, max_iter=50) -> LineFit:
+    """:func:`fit_line_bisquare` on two coordinate arrays (the fast path: no (N, 2) array).
+
+    Fits ``dependent = intercept + slope·independent``; residuals along the dependent coordinate.
+    """
+    u_raw = np.asarray(independent, dtype=float)
+    v = np.ascontiguousarray(dependent, dtype=float)
     u0 = u_raw.mean()
     u = u_raw - u0  # centring keeps the 2×2 normal equations well conditioned
     lever = max(np.abs(u).max(), 1e-12)
+    # Every weighted fit needs the same five sums: one matrix–vector product per iteration.
+    moments = np.empty((5, len(u)))
+    moments[0] = 1.0
+    moments[1] = u
+    moments[2] = v
+    np.multiply(u, u, out=moments[3])
+    np.multiply(u, v, out=moments[4])
+    a, b = _line_from_sums(*moments.sum(axis=1))
     weights = np.ones_like(u)
-    a, b = _weighted_line(u, v, weights)
+    residual = np.empty_like(u)
+    magnitude = np.empty_like(u)
+    scale_floor = 1e-12 * (1.0 + np.abs(v).max())
     iterations, converged = 0, False
     for iterations in range(1, max_iter + 1):  # noqa: B007 (the count is returned)
-        r = v - (a + b * u)
-        mad = _median(np.abs(r))  # about the fit, as robustfit: ≥ half the points keep weight
-        scale = max(mad / MAD_TO_SIGMA, 1e-12 * (1.0 + np.abs(v).max()))
-        z = r / (tuning * scale)
-        weights = np.where(np.abs(z) < 1.0, (1.0 - z * z) ** 2, 0.0)
-        a_new, b_new = _weighted_line(u, v, weights)
+        np.multiply(u, b, out=residual)
+        residual += a
+        np.subtract(v, residual, out=residual)
+        np.abs(residual, out=magnitude)
+        mad = _median_in_place(magnitude)  # about the fit, as robustfit: ≥ half the points keep weight
+        scale = max(mad / MAD_TO_SIGMA, scale_floor)
+        # w = (1 − z²)² for |z| < 1, else 0, with z = r / (tuning·scale)
+        np.multiply(residual, 1.0 / (tuning * scale), out=weights)
+        np.multiply(weights, weights, out=weights)
+        np.subtract(1.0, weights, out=weights)
+        np.maximum(weights, 0.0, out=weights)
+        np.multiply(weights, weights, out=weights)
+        a_new, b_new = _line_from_sums(*(moments @ weights))
         change = max(abs(a_new - a), abs(b_new - b) * lever)
         size = max(abs(a_new), abs(b_new) * lever, 1.0)
         a, b = a_new, b_new

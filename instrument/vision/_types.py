@@ -52,6 +52,12 @@ class CrossMeasurement:
         φv − φh, rad: the non-perpendicularity of the two stripes seen in the image.
     peak_level : float
         Highest grey level on the stripes.
+    search : str
+        How the stripes were found: ``"full"`` (coarse detection on the whole frame, no prior
+        given), ``"tracked"`` (searched only near the prior's lines) or ``"fallback"`` (a prior
+        was given but lost, so the full search ran; ``lost_reason`` says why).
+    lost_reason : str or None
+        Why the prior was declared lost (``search == "fallback"``), else None.
     """
 
     center: np.ndarray
@@ -60,3 +66,5 @@ class CrossMeasurement:
     vertical: StripeLine
     perpendicularity: float
     peak_level: float
+    search: str = "full"
+    lost_reason: str | None = None

@@ -4,16 +4,21 @@ See ``docs/interferometer.md``. ``InterferometerTwin(world, config)`` embeds in 
 ``StandaloneInterferometerHost`` runs on its own world in a ``TwinProcess``.
 """
 
+from sim_devices.interferometer._bus import CanBusTiming
 from sim_devices.interferometer._config import FeedLayout, InterferometerTwinConfig
 from sim_devices.interferometer._head import HeadReading, InterferometerHead
 from sim_devices.interferometer._host import InterferometerTwin, StandaloneInterferometerHost, move_opr
+from sim_devices.interferometer._slcan import SLCAN_FOLDER_PREFIX, remove_stale_slcan_folders
 
 __all__ = [
+    "CanBusTiming",
     "FeedLayout",
     "HeadReading",
     "InterferometerHead",
     "InterferometerTwin",
     "InterferometerTwinConfig",
+    "SLCAN_FOLDER_PREFIX",
     "StandaloneInterferometerHost",
     "move_opr",
+    "remove_stale_slcan_folders",
 ]

@@ -87,6 +87,8 @@ class InterferometerTwinConfig:
     socketcand: bool = True
     slcan: bool = True
     first_frame_pause: float = 0.05  # s after the rawmode "< ok >" before the first frame
+    can_bitrate: float = 1_000_000.0  # bit/s of the bus: a frame's time on it (its receive timestamp)
+    rx_latency: float = 20e-6  # s, mean of the receiving kernel's timestamp latency tail
     # timing
     max_catch_up: float = 0.5  # s: a feed thread further behind than this drops (and counts) samples
 
@@ -99,9 +101,11 @@ class InterferometerTwinConfig:
             raise ValueError(f"interferometer twin: host must be a loopback address, got {self.host!r}")
         if not (self.socketcand or self.slcan):
             raise ValueError("interferometer twin: enable at least one transport (socketcand, slcan)")
-        for name in ("noise_std", "scale_error_limit", "misalignment_std", "first_frame_pause"):
+        for name in ("noise_std", "scale_error_limit", "misalignment_std", "first_frame_pause", "rx_latency"):
             if getattr(self, name) < 0:
                 raise ValueError(f"interferometer twin: {name} must be >= 0, got {getattr(self, name)!r}")
+        if not self.can_bitrate > 0:
+            raise ValueError(f"interferometer twin: can_bitrate must be > 0 bit/s, got {self.can_bitrate!r}")
         if not self.lateral_range > 0:
             raise ValueError(f"interferometer twin: lateral_range must be > 0, got {self.lateral_range!r}")
 

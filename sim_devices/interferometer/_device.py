@@ -5,6 +5,10 @@ Commands received by a transport are queued and executed by the clock thread jus
 sample, and the reply is sent before that sample: every displacement frame after a datum reply is
 relative to the new datum.
 
+Every frame carries the time a receiver on the bus would stamp on it (``CanBusTiming``: the clock
+thread's actual send time plus the receiving kernel's latency, never closer to the previous frame
+than the bus can carry them); socketcand forwards that stamp, as the real daemon forwards the kernel's.
+
 Faults (``FaultKind``, params with defaults; a fault armed with ``count=-1`` fires at every tick
 until cleared):
 
@@ -18,6 +22,9 @@ until cleared):
 - ``disconnect`` [seconds=0.0 for socketcand, 0.2 for slcan; transport=None (all)]: socketcand
   closes every client connection and refuses new ones for ``seconds``; slcan unplugs the pty and
   re-plugs a fresh one at the same path after ``seconds``.
+- ``delay`` [seconds=0.3; transport=None (all)]: the transport holds every frame for ``seconds``,
+  then sends them all at once with their receive timestamps (a congested link, a busy socketcand
+  host, a USB adapter that stops being polled); the head keeps sampling, nothing is lost.
 """
 
 from __future__ import annotations
@@ -27,13 +34,16 @@ import threading
 import time
 from typing import Protocol
 
+import numpy as np
+
 from sim_devices.faults import FaultKind, FaultPlan
 from sim_devices.interferometer import _frames
+from sim_devices.interferometer._bus import CanBusTiming
 from sim_devices.interferometer._config import InterferometerTwinConfig
 from sim_devices.interferometer._head import InterferometerHead
 
 FEED_FAULTS = (FaultKind.BEAM_BREAK, FaultKind.STALL, FaultKind.DROP_REPLY, FaultKind.BAD_CRC,
-               FaultKind.GARBAGE, FaultKind.DISCONNECT)
+               FaultKind.GARBAGE, FaultKind.DISCONNECT, FaultKind.DELAY)
 
 
 class Transport(Protocol):
@@ -43,22 +53,26 @@ class Transport(Protocol):
 
     def disconnect(self, seconds: float) -> None: ...
 
+    def hold(self, seconds: float) -> None: ...
+
 
 class InterferometerDevice:
     def __init__(self, head: InterferometerHead, config: InterferometerTwinConfig, faults: FaultPlan,
-                 junk_rng) -> None:
+                 junk_rng: np.random.Generator, timing_rng: np.random.Generator) -> None:
         self.head = head
         self.config = config
         self.layout = config.layout
         self.faults = faults
         self._junk_rng = junk_rng
+        self.timing = CanBusTiming(timing_rng, config.can_bitrate, config.rx_latency)
+        self._origin_mono, self._origin_epoch = time.monotonic(), time.time()
         self.transports: dict[str, Transport] = {}
         self._commands: queue.SimpleQueue[tuple[int, bytes]] = queue.SimpleQueue()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._stats_lock = threading.Lock()
         self.stats = dict.fromkeys(("produced", "sent", "dropped", "bad_crc", "garbage", "late_skipped",
-                                    "stalled_ticks", "commands", "disconnects"), 0)
+                                    "stalled_ticks", "commands", "disconnects", "delays"), 0)
         self._drop_frames = 0
         self._bad_crc_frames = 0
         self._stall_until = 0.0
@@ -85,7 +99,7 @@ class InterferometerDevice:
     def _run(self) -> None:
         period = 1.0 / self.layout.sample_rate
         status_every = max(1, round(self.layout.sample_rate / self.layout.status_rate))
-        origin_mono, origin_epoch = time.monotonic(), time.time()
+        origin_mono = time.monotonic()
         tick = 0
         while not self._stop.is_set():
             due = origin_mono + tick * period
@@ -99,18 +113,18 @@ class InterferometerDevice:
                 self._counter = (self._counter + skipped) & 0xFF
                 self._count("late_skipped", skipped)
                 continue
-            self._execute_commands(origin_epoch + tick * period)
+            self._execute_commands()
             self._take_faults(now)
             if now < self._stall_until:
                 self._count("stalled_ticks")
                 tick += 1
                 continue
-            self._sample(now, origin_epoch + tick * period)
+            self._sample(now)
             if tick % status_every == 0:
-                self._send_status(now, origin_epoch + tick * period)
+                self._send_status(now)
             tick += 1
 
-    def _sample(self, now: float, stamp: float) -> None:
+    def _sample(self, now: float) -> None:
         reading = self.head.read(now)
         status = 0
         counts = round(reading.displacement / self.layout.resolution)
@@ -133,10 +147,10 @@ class InterferometerDevice:
             self._bad_crc_frames -= 1
             data = data[:7] + bytes([data[7] ^ 0xA5])
             self._count("bad_crc")
-        self._broadcast(self.layout.displacement_id, data, stamp)
+        self._broadcast(self.layout.displacement_id, data)
         self._count("sent")
 
-    def _send_status(self, now: float, stamp: float) -> None:
+    def _send_status(self, now: float) -> None:
         beam_ok, datum_set, signal = self.head.status(now)
         status = (_frames.BEAM_OK if beam_ok else 0) | (_frames.DATUM_SET if datum_set else 0)
         if signal < self.config.low_signal:
@@ -144,9 +158,9 @@ class InterferometerDevice:
         data = _frames.status_frame(self.layout.status_id, status, signal, self.head.axis,
                                     self.head.datum_generation, self._heartbeat)
         self._heartbeat = (self._heartbeat + 1) & 0xFF
-        self._broadcast(self.layout.status_id, data, stamp)
+        self._broadcast(self.layout.status_id, data)
 
-    def _execute_commands(self, stamp: float) -> None:
+    def _execute_commands(self) -> None:
         while True:
             try:
                 can_id, data = self._commands.get_nowait()
@@ -164,7 +178,7 @@ class InterferometerDevice:
             else:
                 result = 2  # unknown opcode
             reply = _frames.reply_frame(self.layout.reply_id, opcode, token, result, self.head.datum_generation)
-            self._broadcast(self.layout.reply_id, reply, stamp)
+            self._broadcast(self.layout.reply_id, reply)
 
     def _take_faults(self, now: float) -> None:
         plan = self.faults
@@ -187,6 +201,12 @@ class InterferometerDevice:
                     default = 0.0 if name == "socketcand" else 0.2
                     transport.disconnect(float(fault.params.get("seconds", default)))
             self._count("disconnects")
+        if fault := plan.take(FaultKind.DELAY):
+            wanted = fault.params.get("transport")
+            for name, transport in self.transports.items():
+                if wanted in (None, name):
+                    transport.hold(float(fault.params.get("seconds", 0.3)))
+            self._count("delays")
 
     def _send_garbage(self, size: int) -> None:
         junk = self._junk_rng.integers(0x80, 0x100, max(1, size), dtype=int).astype("uint8").tobytes()
@@ -195,7 +215,9 @@ class InterferometerDevice:
             transport.send_garbage(junk if name == "socketcand" else junk + b"\r")
         self._count("garbage")
 
-    def _broadcast(self, can_id: int, data: bytes, stamp: float) -> None:
+    def _broadcast(self, can_id: int, data: bytes) -> None:
+        sent = self._origin_epoch + (time.monotonic() - self._origin_mono)  # epoch time, immune to clock steps
+        stamp = self.timing.receive_time(sent, len(data))
         for transport in self.transports.values():
             transport.send_frame(can_id, data, stamp)
 

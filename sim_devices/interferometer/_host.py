@@ -53,7 +53,8 @@ class InterferometerTwin:
         config = self.config
         try:
             self.head = InterferometerHead(self.world, config)
-            self.device = InterferometerDevice(self.head, config, self.faults, self.world.rng("interferometer junk"))
+            self.device = InterferometerDevice(self.head, config, self.faults, self.world.rng("interferometer junk"),
+                                               self.world.rng("interferometer bus timing"))
             self.endpoints = {"layout": config.layout.to_dict()}
             if config.socketcand:
                 self._socketcand = SocketcandServer(config.host, config.port, config.channel, self.device.on_command,

@@ -11,11 +11,18 @@ sends ``C``, ``S8``, an empty line and ``O`` without reading the replies, and ig
 
 The master end is non-blocking: if the host stops reading and the pty buffer fills, whole frames
 are dropped and counted (``overflows``), as a real adapter's FIFO would.
+
+The symlink lives in a temporary folder of its own (``opr-slcan-*``), which ``stop()`` removes. A
+process killed with SIGKILL cannot remove it, so the folder carries a lock file that its process
+holds locked (``flock``) for as long as it lives; the kernel drops the lock when the process dies,
+however it dies, and every new ``SlcanPort`` removes the folders whose lock nobody holds
+(``remove_stale_slcan_folders``).
 """
 
 from __future__ import annotations
 
 import errno
+import fcntl
 import os
 import select
 import shutil
@@ -28,12 +35,62 @@ from collections.abc import Callable
 CommandSink = Callable[[int, bytes], None]
 
 _MAX_PENDING = 64 * 1024  # bytes queued for the host before frames are dropped
+SLCAN_FOLDER_PREFIX = "opr-slcan-"
+_OWNER_LOCK = "owner.lock"
+
+
+def remove_stale_slcan_folders(root: str | None = None) -> list[str]:
+    """Remove the folders of slcan twins whose process is gone (killed before ``stop()`` ran).
+
+    A folder is stale when the lock file in it can be locked: its owner held it locked while alive.
+    Folders being set up (no lock file yet) and live ones are left alone.
+
+    Parameters
+    ----------
+    root : str, optional
+        Where to look (default: the temporary directory).
+
+    Returns
+    -------
+    list of str
+        The folders removed.
+    """
+    removed = []
+    with os.scandir(root or tempfile.gettempdir()) as entries:
+        for entry in entries:
+            if not entry.name.startswith(SLCAN_FOLDER_PREFIX) or not entry.is_dir(follow_symlinks=False):
+                continue
+            try:
+                fd = os.open(os.path.join(entry.path, _OWNER_LOCK), os.O_RDWR | os.O_CLOEXEC)
+            except OSError:
+                continue  # no lock file (yet): not ours to judge
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                os.close(fd)
+                continue  # its owner is alive
+            shutil.rmtree(entry.path, ignore_errors=True)
+            os.close(fd)
+            removed.append(entry.path)
+    return removed
+
+
+def _owned_folder() -> tuple[str, int]:
+    """A new folder and the fd of its lock file, locked by this process (see the module docstring)."""
+    remove_stale_slcan_folders()
+    folder = tempfile.mkdtemp(prefix=SLCAN_FOLDER_PREFIX)
+    # Locked under another name, then renamed: whoever sees the lock file finds it locked already.
+    draft = os.path.join(folder, _OWNER_LOCK + ".new")
+    fd = os.open(draft, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o600)
+    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    os.rename(draft, os.path.join(folder, _OWNER_LOCK))
+    return folder, fd
 
 
 class SlcanPort:
     def __init__(self, on_command: CommandSink, name: str = "slcan0") -> None:
         self.on_command = on_command
-        self._dir = tempfile.mkdtemp(prefix="ifm-slcan-")
+        self._dir, self._owner_lock = _owned_folder()
         self.path = os.path.join(self._dir, name)
         self._lock = threading.Lock()  # guards the pty fds, the output queue and the channel state
         self._master: int | None = None
@@ -42,6 +99,8 @@ class SlcanPort:
         self._inbox = bytearray()
         self._channel_open = False
         self._unplugged_until = 0.0
+        self._hold_until = 0.0
+        self._held = bytearray()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.overflows = 0
@@ -61,12 +120,28 @@ class SlcanPort:
         with self._lock:
             self._unplug_locked()
         shutil.rmtree(self._dir, ignore_errors=True)
+        if self._owner_lock >= 0:
+            os.close(self._owner_lock)
+            self._owner_lock = -1
 
     # ------------------------------------------------------------------------------ the bus side
     def send_frame(self, can_id: int, data: bytes, timestamp: float) -> None:
         with self._lock:
-            if self._channel_open and self._master is not None:
-                self._queue_locked(f"t{can_id:03X}{len(data)}{data.hex().upper()}\r".encode("ascii"), frame=True)
+            if not (self._channel_open and self._master is not None):
+                return
+            line = f"t{can_id:03X}{len(data)}{data.hex().upper()}\r".encode("ascii")
+            if time.monotonic() < self._hold_until:
+                self._held += line
+                return
+            if self._held:
+                line, self._held = bytes(self._held) + line, bytearray()
+            self._queue_locked(line, frame=True)
+
+    def hold(self, seconds: float) -> None:
+        """Hold every frame for ``seconds``, then send them in one burst (an adapter not polled for
+        a while: python-can stamps slcan frames when it reads them, so the pause shows)."""
+        with self._lock:
+            self._hold_until = max(self._hold_until, time.monotonic() + max(0.0, seconds))
 
     def send_garbage(self, junk: bytes) -> None:
         with self._lock:
@@ -93,6 +168,7 @@ class SlcanPort:
         self._channel_open = False
         self._pending.clear()
         self._inbox.clear()
+        self._held.clear()
 
     def _unplug_locked(self) -> None:
         for fd in (self._master, self._slave):

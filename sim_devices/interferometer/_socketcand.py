@@ -2,7 +2,8 @@
 
 Speaks what python-can's ``socketcand`` client expects, to the byte: ``< hi >`` on its own in
 the first read, ``< ok >`` to ``< open <channel> >`` and ``< rawmode >``, then
-``< frame <3 hex id> <sec>.<usec> <hex data> >`` per frame. It pauses ``first_frame_pause``
+``< frame <3 hex id> <sec>.<usec> <hex data> >`` per frame, with the receive timestamp the bus gave
+the frame (as the real daemon forwards the kernel's). It pauses ``first_frame_pause``
 seconds after the rawmode ``< ok >`` because the client reads that ``< ok >`` with one ``recv``
 and fails if a frame arrives in the same read. In raw mode ``< send <id> <dlc> <b0> <b1> ... >``
 puts a frame on the bus (the head's command input). Any number of clients.
@@ -52,6 +53,8 @@ class SocketcandServer:
         self._clients: list[_Client] = []
         self._clients_lock = threading.Lock()
         self._refuse_until = 0.0
+        self._hold_until = 0.0
+        self._held: list[bytes] = []
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.connections = 0
@@ -88,7 +91,17 @@ class SocketcandServer:
         if micros >= 1_000_000:
             seconds, micros = seconds + 1, micros - 1_000_000
         line = f"< frame {can_id:03X} {seconds}.{micros:06d} {data.hex().upper()} >".encode("ascii")
+        if time.monotonic() < self._hold_until:
+            self._held.append(line)
+            return
+        if self._held:
+            line, self._held = b"".join(self._held) + line, []
         self._broadcast(line)
+
+    def hold(self, seconds: float) -> None:
+        """Hold every frame for ``seconds``, then send them in one burst (a congested link or a busy
+        daemon host: the frames keep the timestamps they were received with)."""
+        self._hold_until = max(self._hold_until, time.monotonic() + max(0.0, seconds))
 
     def send_garbage(self, junk: bytes) -> None:
         self._broadcast(junk)

@@ -1,4 +1,5 @@
-"""The rotary table's serial ASCII face: a PI GCS 2.0 style line server on a pty.
+"""The rotary table's GCS face: a PI GCS 2.0 style line protocol, served on a pty (here) and on TCP
+(``_gcs_tcp.py``), as a PI controller offers both (RS-232 and TCP port 50000).
 
 One axis, identifier ``"1"``, units degrees. Commands end with LF; set commands are silent, queries
 answer one line per item and every line but the last ends with ``" \\n"`` (the GCS multi-line rule).
@@ -7,6 +8,10 @@ Errors are latched and read (and cleared) with ``ERR?``; only the last error is 
 Supported: ``*IDN?``, ``CSV?`` (``2.0``), ``ERR?``, ``SAI?``, ``HLP?``, ``MOV``, ``MVR``, ``POS?``,
 ``MOV?`` (commanded target), ``ONT?``, ``FRF``, ``FRF?``, ``STP``, ``HLT``, ``VEL``, ``VEL?``, ``SVO``,
 ``SVO?``, ``TMN?``, ``TMX?``, and the single-byte queries ``#5`` (moving), ``#7`` (ready), ``#24`` (stop).
+
+The controller powers on with the servo off and the axis unreferenced: ``MOV``/``MVR`` latch error 5
+until ``SVO 1 1`` and ``FRF 1`` have been sent (``FRF`` itself needs the servo on). Targets beyond the
+table's soft limits (``TMN?``/``TMX?``, the physics' ``travel_min``/``travel_max``) latch error 7.
 
 An armed ``exception`` fault (param ``code``, default 1) makes the next line fail with that error
 code: a set command is not executed, a query gets no answer (``ERR?`` itself is never hit).
@@ -25,7 +30,7 @@ from sim_devices.faults import FaultKind, FaultPlan
 from sim_devices.rotary_table._physics import CommandRefused, TablePhysics
 
 AXIS = "1"
-TRAVEL_DEG = 36_000.0  # ±100 turns of soft travel range
+SINGLE_BYTE_COMMANDS = (b"\x05", b"\x07", b"\x18")  # #5, #7, #24 sent as one byte, without LF
 
 # PI GCS error codes used here (the numbers and meanings of PI's controllers).
 ERRORS = {
@@ -47,7 +52,29 @@ class GcsError(Exception):
         super().__init__(ERRORS.get(code, str(code)))
 
 
-def _corrupt_middle(reply: bytes) -> bytes:
+def split_commands(buffer: bytes) -> tuple[list[str | None], bytes]:
+    """The complete commands at the start of ``buffer`` and the incomplete rest.
+
+    A command is a single-byte query or a line ended by LF; a line that is not ASCII is ``None``
+    (the controller latches a syntax error for it).
+    """
+    commands: list[str | None] = []
+    while True:
+        if buffer[:1] in SINGLE_BYTE_COMMANDS:
+            commands.append(chr(buffer[0]))
+            buffer = buffer[1:]
+            continue
+        index = buffer.find(b"\n")
+        if index < 0:
+            return commands, buffer
+        raw, buffer = buffer[:index], buffer[index + 1:]
+        try:
+            commands.append(raw.decode("ascii"))
+        except UnicodeDecodeError:
+            commands.append(None)
+
+
+def corrupt_middle(reply: bytes) -> bytes:
     """A parity error on the line: one character in the middle of the answer is flipped."""
     if len(reply) < 3:
         return reply
@@ -69,8 +96,12 @@ class GcsController:
     def _deg(self, counts: int) -> float:
         return counts * self._quantum_deg
 
-    def handle(self, line: str) -> bytes:
+    def handle(self, line: str | None) -> bytes:
+        """The answer to one command line (``None``: a line that was not ASCII), b"" for none."""
         with self._lock:
+            if line is None:
+                self.error = 1
+                return b""
             line = line.strip()
             if not line:
                 return b""
@@ -126,12 +157,13 @@ class GcsController:
         return pairs
 
     def _counts(self, degrees: float) -> int:
-        if abs(degrees) > TRAVEL_DEG:
+        if abs(degrees) > 1e6:  # far beyond any travel; also keeps the integer conversion sane
             raise GcsError(7)
         return int(round(degrees / self._quantum_deg))
 
-    def _refuse(self, exc: CommandRefused) -> GcsError:
-        return GcsError(1024 if "alarm" in str(exc) else 5)
+    @staticmethod
+    def _refuse(exc: CommandRefused) -> GcsError:
+        return GcsError({"alarm": 1024, "travel": 7, "value": 17}.get(exc.reason, 5))
 
     # ----------------------------------------------------------------------------- commands
     def _cmd_IDN_Q(self, args: list[str]) -> list[str]:  # *IDN?
@@ -232,10 +264,10 @@ class GcsController:
         return [f"{axis}={int(status['enabled'] and not status['alarms'])}" for axis in self._axes(args)]
 
     def _cmd_TMN_Q(self, args: list[str]) -> list[str]:
-        return [f"{axis}={-TRAVEL_DEG:.9f}" for axis in self._axes(args)]
+        return [f"{axis}={math.degrees(self.physics.config.travel_min):.9f}" for axis in self._axes(args)]
 
     def _cmd_TMX_Q(self, args: list[str]) -> list[str]:
-        return [f"{axis}={TRAVEL_DEG:.9f}" for axis in self._axes(args)]
+        return [f"{axis}={math.degrees(self.physics.config.travel_max):.9f}" for axis in self._axes(args)]
 
 
 def _mangle(command: str) -> str:
@@ -256,7 +288,7 @@ class GcsTableTwin:
         self._stop = threading.Event()
 
     def start(self) -> dict[str, str]:
-        self._relay = PtyRelay(self.faults, framer=line_framer, corrupt=_corrupt_middle, seed=self._seed,
+        self._relay = PtyRelay(self.faults, framer=line_framer, corrupt=corrupt_middle, seed=self._seed,
                                name="gcs relay").start()
         self._fd = os.open(self._relay.device_path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
         self._wake_r, self._wake_w = os.pipe()
@@ -279,20 +311,11 @@ class GcsTableTwin:
                 continue
             except OSError:
                 break
-            buffer += data
-            while buffer[:1] in (b"\x05", b"\x07", b"\x18"):  # single-byte commands carry no LF
-                self._answer(chr(buffer[0]))
-                buffer = buffer[1:]
-            while (index := buffer.find(b"\n")) >= 0:
-                raw, buffer = buffer[:index], buffer[index + 1:]
-                try:
-                    line = raw.decode("ascii")
-                except UnicodeDecodeError:
-                    self.controller.error = 1
-                    continue
-                self._answer(line)
+            commands, buffer = split_commands(buffer + data)
+            for command in commands:
+                self._answer(command)
 
-    def _answer(self, line: str) -> None:
+    def _answer(self, line: str | None) -> None:
         answer = self.controller.handle(line)
         if answer:
             try:

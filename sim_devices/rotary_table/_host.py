@@ -22,13 +22,14 @@ from sim_devices._config import checked_fields
 from sim_devices.control import dispatch
 from sim_devices.faults import FaultKind, FaultPlan
 from sim_devices.rotary_table._gcs import GcsTableTwin
+from sim_devices.rotary_table._gcs_tcp import GcsTcpTwin
 from sim_devices.rotary_table._modbus import ModbusTableTwin
 from sim_devices.rotary_table._physics import TableConfig, TablePhysics
 from sim_devices.rotary_table._register_map import DriveRegisterMap
 from sim_devices.world import Axis, World, WorldConfig
 
-Transport = Literal["modbus_tcp", "modbus_rtu", "gcs"]
-TRANSPORTS: tuple[Transport, ...] = ("modbus_tcp", "modbus_rtu", "gcs")
+Transport = Literal["modbus_tcp", "modbus_rtu", "gcs", "gcs_tcp"]
+TRANSPORTS: tuple[Transport, ...] = ("modbus_tcp", "modbus_rtu", "gcs", "gcs_tcp")
 
 
 @dataclass(frozen=True)
@@ -40,6 +41,7 @@ class RotaryTableTwinConfig:
     register_map: DriveRegisterMap = field(default_factory=DriveRegisterMap)
     unit: int = 1
     tcp_port: int = 0
+    gcs_tcp_port: int = 0
     seed: int | None = None
     tick: float = 0.01
     world_rate: float = 50.0
@@ -55,14 +57,16 @@ class RotaryTableTwinConfig:
             settings["transports"] = cast(tuple[Transport, ...], transports)
         settings["register_map"] = DriveRegisterMap.from_config(settings.get("register_map"))
         settings["table"] = dict(settings.get("table") or {})
-        for key, kind in (("unit", int), ("tcp_port", int), ("tick", float), ("world_rate", float)):
+        for key, kind in (("unit", int), ("tcp_port", int), ("gcs_tcp_port", int), ("tick", float),
+                          ("world_rate", float)):
             if key in settings:
                 settings[key] = kind(settings[key])
         if settings.get("seed") is not None:
             settings["seed"] = int(settings["seed"])
         config = cls(**settings)
-        if not 0 <= config.unit <= 247:
-            raise ValueError(f"rotary table twin: unit must be a Modbus device id 0..247, got {config.unit}")
+        if not 1 <= config.unit <= 247:
+            raise ValueError(f"rotary table twin: unit must be a Modbus device id 1..247 (0 is broadcast), "
+                             f"got {config.unit}")
         if not (config.tick > 0 and config.world_rate > 0):
             raise ValueError("rotary table twin: tick and world_rate must be > 0")
         return config
@@ -78,10 +82,12 @@ class RotaryTableTwin:
         OPR is mounted on the table (``world.mount == "table:<axis>"``). It is not written while the
         OPR is on the robot, because the world's single ``settled`` flag then belongs to the robot.
     config : mapping
-        ``transports`` (subset of ``modbus_tcp``, ``modbus_rtu``, ``gcs``; default all), ``table``
-        (``TableConfig`` fields), ``register_map`` (``RegisterMap`` fields), ``unit`` (Modbus id, 1),
-        ``tcp_port`` (0 = OS-chosen), ``seed`` (defaults to the world's), ``tick`` (s between physics
-        updates in the background, 0.01), ``world_rate`` (Hz of unsettled angle updates, 50).
+        ``transports`` (subset of ``modbus_tcp``, ``modbus_rtu``, ``gcs`` (serial), ``gcs_tcp``;
+        default all), ``table`` (``TableConfig`` fields), ``register_map`` (``RegisterMap`` fields),
+        ``unit`` (Modbus id, 1), ``tcp_port`` (Modbus TCP, 0 = OS-chosen), ``gcs_tcp_port`` (GCS on
+        TCP, 0 = OS-chosen; a real PI controller uses 50000), ``seed`` (defaults to the world's),
+        ``tick`` (s between physics updates in the background, 0.01), ``world_rate`` (Hz of unsettled
+        angle updates, 50). The table powers on with the servo off and unreferenced.
     clock : callable
         Monotonic seconds for the physics (inject a fake clock in tests).
     """
@@ -109,6 +115,9 @@ class RotaryTableTwin:
                                           tcp_port=settings.tcp_port, seed=seed)
         if "gcs" in self.transports:
             self.gcs = GcsTableTwin(self.physics, seed=seed)
+        self.gcs_tcp: GcsTcpTwin | None = None
+        if "gcs_tcp" in self.transports:
+            self.gcs_tcp = GcsTcpTwin(self.physics, port=settings.gcs_tcp_port)
         self._stop = threading.Event()
         self._ticker: threading.Thread | None = None
         self.endpoints: dict[str, Any] = {}
@@ -137,13 +146,15 @@ class RotaryTableTwin:
 
     # ----------------------------------------------------------------------------- host API
     def faults(self, transport: str) -> FaultPlan:
-        """The fault plan of one endpoint: ``modbus_tcp``, ``modbus_rtu`` or ``gcs``."""
+        """The fault plan of one endpoint: ``modbus_tcp``, ``modbus_rtu``, ``gcs`` or ``gcs_tcp``."""
         if transport == "modbus_tcp" and self.modbus is not None:
             return self.modbus.faults
         if transport == "modbus_rtu" and self.modbus is not None:
             return self.modbus.rtu_faults
         if transport == "gcs" and self.gcs is not None:
             return self.gcs.faults
+        if transport == "gcs_tcp" and self.gcs_tcp is not None:
+            return self.gcs_tcp.faults
         raise ValueError(f"rotary table twin: no transport {transport!r} running (have {list(self.transports)})")
 
     def start(self) -> dict[str, Any]:
@@ -152,6 +163,8 @@ class RotaryTableTwin:
                 self.endpoints.update(self.modbus.start())
             if self.gcs is not None:
                 self.endpoints.update(self.gcs.start())
+            if self.gcs_tcp is not None:
+                self.endpoints.update(self.gcs_tcp.start())
         except BaseException:
             self.stop()
             raise
@@ -165,7 +178,7 @@ class RotaryTableTwin:
         if self._ticker is not None:
             self._ticker.join(5.0)
             self._ticker = None
-        for face in (self.modbus, self.gcs):
+        for face in (self.modbus, self.gcs, self.gcs_tcp):
             if face is not None:
                 face.stop()
 
@@ -183,7 +196,7 @@ class RotaryTableTwin:
 
     # ----------------------------------------------------------------------------- typed control
     def arm(self, transport: str, kind: FaultKind | str, count: int = 1, **params: Any) -> None:
-        """Arm a fault on one endpoint (``modbus_tcp``, ``modbus_rtu`` or ``gcs``)."""
+        """Arm a fault on one endpoint (``modbus_tcp``, ``modbus_rtu``, ``gcs`` or ``gcs_tcp``)."""
         self.faults(transport).arm(kind, int(count), **params)
 
     def clear(self, transport: str, kinds: tuple[FaultKind | str, ...] | list[FaultKind | str] = ()) -> None:

@@ -5,6 +5,19 @@ function run before every read and write. Ours advances the table physics, refre
 registers (alarm, status, encoder, actual velocity), executes writes to the velocity, acceleration
 and control registers, and answers an armed ``exception`` fault with that Modbus exception code.
 
+Exception codes, as the Modbus application protocol defines them:
+
+- 2 (illegal data address): an unmapped address, or a write to a read-only register (``SimData``);
+- 3 (illegal data value): a value the drive never accepts: a speed or acceleration word of 0 or
+  above the drive's maximum, an unknown opcode, a move whose target lies beyond the soft limits
+  (the offending write is the opcode that would start it; nothing moves and no alarm is latched);
+- 4 (server device failure): the drive cannot act now: alarm present, servo off, not referenced.
+
+Device ids: on RTU the drive answers only its own ``unit``, stays silent for every other address,
+and executes broadcast (id 0) writes without replying, as a real RTU slave does. On TCP the unit id
+is redundant (the IP address names the device); like a direct TCP device it also answers 0 and 255
+for itself, and answers exception 11 (gateway target failed to respond) for any other id.
+
 Transport faults (dropped reply, delay, garbage, truncation, bad CRC, stall, disconnect) are not
 taken here but in the relay in front of the server (``sim_devices._pty``), one plan per endpoint.
 """
@@ -17,16 +30,48 @@ from collections.abc import Coroutine, Mapping
 from typing import Any, TypeVar, cast
 
 from pymodbus.constants import ExcCodes
+from pymodbus.exceptions import NoSuchIdException
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 from pymodbus.simulator import DataType, SimData, SimDevice
+from pymodbus.simulator.simcore import SimCore
 
 from sim_devices._pty import PtyRelay, modbus_rtu_reply_framer, modbus_tcp_reply_framer
 from sim_devices.faults import FaultKind, FaultPlan
-from sim_devices.rotary_table._physics import CommandRefused, TablePhysics
+from sim_devices.rotary_table._physics import CommandRefused, TablePhysics, ValueRefused
 from sim_devices.rotary_table._register_map import DriveRegisterMap
 from sim_devices.rotary_table._tcp_proxy import TcpFaultProxy
 
 _T = TypeVar("_T")
+
+BROADCAST = 0
+TCP_DIRECT_IDS = (0, 255)  # Modbus TCP implementation guide: a directly connected device answers these too
+
+
+class _DriveCore(SimCore):
+    """The server's datastore with real device-id rules: only ``aliases`` reach the drive.
+
+    pymodbus 3.16's ``SimCore`` hands a request for an unknown id to a KeyError, which the server
+    turns into exception 4; raising ``NoSuchIdException`` instead makes the server answer exception
+    11, or nothing at all when it was built with ``ignore_missing_devices=True`` (RTU).
+    """
+
+    def __init__(self, device: SimDevice, aliases: Mapping[int, int]) -> None:
+        super().__init__(device)
+        self._aliases = dict(aliases)
+
+    def _drive_id(self, device_id: int) -> int:
+        try:
+            return self._aliases[device_id]
+        except KeyError:
+            raise NoSuchIdException(f"device id {device_id}") from None
+
+    async def async_getValues(self, device_id: int, func_code: int, address: int,
+                              count: int = 1) -> list[int] | list[bool] | ExcCodes:
+        return await super().async_getValues(self._drive_id(device_id), func_code, address, count)
+
+    async def async_setValues(self, device_id: int, func_code: int, address: int,
+                              values: list[int] | list[bool]) -> ExcCodes | None:
+        return await super().async_setValues(self._drive_id(device_id), func_code, address, values)
 
 
 def _corrupt_mbap(reply: bytes) -> bytes:
@@ -53,6 +98,10 @@ class ModbusDrive:
                    for name, (start, width) in self.map.spans().items()]
         return SimDevice(id=self.unit, simdata=simdata, action=self.action)
 
+    def datastore(self, aliases: tuple[int, ...] = ()) -> SimCore:
+        """The datastore a server serves: this drive under ``unit`` and the ids in ``aliases``."""
+        return _DriveCore(self.device(), {self.unit: self.unit, **dict.fromkeys(aliases, self.unit)})
+
     # ----------------------------------------------------------------------------- the action
     async def action(self, function_code: int, start_address: int, address: int, count: int,
                      registers: list[int], set_values: list[int] | list[bool] | None) -> ExcCodes | None:
@@ -75,19 +124,32 @@ class ModbusDrive:
         def current(reg: int) -> int:  # the value after this write lands
             return written.get(reg, registers[reg - start])
 
+        config = self.physics.config
         try:
+            # A setting word is accepted from 1 up to the word the drive itself reads back at its
+            # maximum (which may round above it: 2 rad/s² reads as 2 × 1/6 rev/s²); the value is then
+            # capped at the physical maximum, so every word read back can be written back.
             if m.velocity in written:
-                self.physics.set_speed(m.speed_of_word(current(m.velocity)))
+                word = current(m.velocity)
+                self._check_word("velocity", word, m.speed_word(config.max_speed))
+                self.physics.set_speed(min(m.speed_of_word(word), config.max_speed))
             if m.acceleration in written:
-                self.physics.set_acceleration(m.acceleration_of_word(current(m.acceleration)))
+                word = current(m.acceleration)
+                self._check_word("acceleration", word, m.acceleration_word(config.acceleration))
+                self.physics.set_acceleration(min(m.acceleration_of_word(word), config.acceleration))
             if m.control in written:
                 target = m.s32_of_words(current(m.position_command), current(m.position_command + 1))
                 self._execute(written[m.control], target)
+        except ValueRefused:
+            return ExcCodes.ILLEGAL_VALUE
         except CommandRefused:
             return ExcCodes.DEVICE_FAILURE
-        except ValueError:
-            return ExcCodes.ILLEGAL_VALUE
         return None
+
+    @staticmethod
+    def _check_word(name: str, word: int, largest: int) -> None:
+        if not 1 <= word <= largest:
+            raise ValueRefused(f"{name} word {word} outside 1..{largest}")
 
     def _execute(self, opcode: int, position_command: int) -> None:
         ops, physics = self.map.opcodes, self.physics
@@ -107,7 +169,7 @@ class ModbusDrive:
         elif opcode == ops.alarm_reset:
             physics.alarm_reset()
         elif opcode != 0:
-            raise ValueError(f"unknown opcode 0x{opcode:02x}")
+            raise ValueRefused(f"unknown opcode 0x{opcode:02x}")
 
     def _refresh(self, start: int, registers: list[int]) -> None:
         m, bits = self.map, self.map.status_bits
@@ -204,6 +266,8 @@ class ModbusTableTwin:
     async def _start_tcp(self) -> int:
         """Start the TCP server on an OS-chosen port; returns that port."""
         server = ModbusTcpServer(self.tcp_drive.device(), address=("127.0.0.1", 0))
+        # ``context`` is the server's public datastore attribute; ours applies the device-id rules.
+        server.context = self.tcp_drive.datastore(TCP_DIRECT_IDS)
         await server.serve_forever(background=True)
         self._servers.append(server)
         # pymodbus types ``transport`` as a BaseTransport; for a listening server it is the asyncio.Server.
@@ -211,7 +275,10 @@ class ModbusTableTwin:
         return int(listener.sockets[0].getsockname()[1])
 
     async def _start_rtu(self, path: str) -> ModbusSerialServer:
-        server = ModbusSerialServer(self.rtu_drive.device(), port=path, baudrate=115200, timeout=1.0)
+        # An RTU slave is silent for other addresses and executes broadcast writes without a reply.
+        server = ModbusSerialServer(self.rtu_drive.device(), port=path, baudrate=115200, timeout=1.0,
+                                    ignore_missing_devices=True, broadcast_enable=True)
+        server.context = self.rtu_drive.datastore()
         await server.serve_forever(background=True)
         self._servers.append(server)
         return server

@@ -13,6 +13,13 @@ Angles
 The servo closes its loop on the reading: it plans the motor motion so that the noise-free reading
 lands on the commanded count, so *commanded ≈ reported ≠ true*, and ``|reported − true|`` stays
 below ``TableConfig.reported_error_bound()`` once homed (periodic error, backlash, quantisation, 3σ).
+
+Power-on state and limits
+-------------------------
+The controller powers on with the servo off and the axis unreferenced; it refuses moves until the
+servo is on and (with ``requires_homing``, the default, as on a PI controller) the reference move
+has been made. One set of soft limits (``travel_min``/``travel_max``, on the reported angle) is
+checked here, before any motion starts, so every protocol face refuses the same targets.
 """
 
 from __future__ import annotations
@@ -32,7 +39,22 @@ ARCSEC = math.pi / (180.0 * 3600.0)
 
 
 class CommandRefused(Exception):
-    """The drive cannot execute a command now (alarm, disabled, not homed ...)."""
+    """The drive cannot execute a command now.
+
+    ``reason`` says why, for the protocol faces to answer with their own codes: ``"alarm"``,
+    ``"servo_off"``, ``"unreferenced"``, or (``ValueRefused``) ``"value"`` and ``"travel"``.
+    """
+
+    def __init__(self, message: str, reason: str) -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
+class ValueRefused(CommandRefused):
+    """A value the drive never accepts (a speed outside its range, a target beyond the soft limits)."""
+
+    def __init__(self, message: str, reason: str = "value") -> None:
+        super().__init__(message, reason)
 
 
 @dataclass(frozen=True)
@@ -50,8 +72,15 @@ class TableConfig:
     settle_time: float = 0.02  # s after the profile ends until "in position"
     home_speed: float = 0.25  # rad/s
     home_overshoot: float = math.radians(0.5)  # homing approaches the mark from below
-    requires_homing: bool = False  # refuse moves before homing (a PI controller's default is True)
+    requires_homing: bool = True  # refuse moves before the reference move (a PI controller's default)
+    travel_min: float = -200.0 * math.pi  # rad, soft limits of the reported angle: ±100 turns (±36000°),
+    travel_max: float = 200.0 * math.pi  # as far as a cabled fixture on the table may wind
     seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not self.travel_min < self.travel_max:
+            raise ValueError(f"table config: travel_min ({self.travel_min!r}) must be below travel_max "
+                             f"({self.travel_max!r})")
 
     @property
     def acceleration(self) -> float:
@@ -150,7 +179,7 @@ class TablePhysics:
         self._target_counts = 0
         self._homed = False
         self._homing = False
-        self._enabled = True
+        self._enabled = False  # power-on: servo off, unreferenced
         self._alarms: set[str] = set()
         self._stopping = False
         self._last_published: tuple[float, bool] | None = None
@@ -222,16 +251,27 @@ class TablePhysics:
     # ----------------------------------------------------------------------------- commands
     def _check_can_move(self, needs_home: bool) -> None:
         if self._alarms:
-            raise CommandRefused(f"alarm present ({', '.join(sorted(self._alarms))})")
+            raise CommandRefused(f"alarm present ({', '.join(sorted(self._alarms))})", "alarm")
         if not self._enabled:
-            raise CommandRefused("motor disabled")
+            raise CommandRefused("servo off (motor disabled)", "servo_off")
         if needs_home and self.config.requires_homing and not self._homed:
-            raise CommandRefused("not referenced (home first)")
+            raise CommandRefused("not referenced (home first)", "unreferenced")
+
+    def check_travel(self, counts: int) -> None:
+        """Raise ``ValueRefused`` (reason ``"travel"``) if ``counts`` lies beyond the soft limits."""
+        angle = int(counts) * self.quantum
+        low, high = self.config.travel_min, self.config.travel_max
+        if not low <= angle <= high:
+            raise ValueRefused(f"target {math.degrees(angle):.6g}° outside the soft limits "
+                               f"[{math.degrees(low):.6g}°, {math.degrees(high):.6g}°]", "travel")
 
     def move_to_counts(self, counts: int, speed: float | None = None) -> None:
+        """Start a move to the reported angle ``counts``; ``CommandRefused`` (nothing moves) if the
+        drive cannot move now or the target is beyond the soft limits."""
         with self._lock:
             t = self.clock()
             self._finish_if_done(t)
+            self.check_travel(counts)
             self._check_can_move(True)
             self._homing = False
             self._target_counts = int(counts)
@@ -277,15 +317,15 @@ class TablePhysics:
 
     def set_speed(self, speed: float) -> None:
         if not (0.0 < speed <= self.config.max_speed * (1 + 1e-9)):
-            raise CommandRefused(f"speed {speed:.6g} rad/s outside (0, {self.config.max_speed:.6g}]")
+            raise ValueRefused(f"speed {speed:.6g} rad/s outside (0, {self.config.max_speed:.6g}]")
         with self._lock:
-            self._speed = float(speed)
+            self._speed = min(float(speed), self.config.max_speed)
 
     def set_acceleration(self, acceleration: float) -> None:
         if not (0.0 < acceleration <= self.config.acceleration * (1 + 1e-9)):
-            raise CommandRefused(f"acceleration {acceleration:.6g} rad/s² outside (0, {self.config.acceleration:.6g}]")
+            raise ValueRefused(f"acceleration {acceleration:.6g} rad/s² outside (0, {self.config.acceleration:.6g}]")
         with self._lock:
-            self._acceleration = float(acceleration)
+            self._acceleration = min(float(acceleration), self.config.acceleration)
 
     def enable(self, on: bool = True) -> None:
         with self._lock:
