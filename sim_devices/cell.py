@@ -274,16 +274,11 @@ class CellHost:
                 "rotary_table": {**config.rotary_table, "time_scale": self.time_scale},
                 "interferometer": dict(config.interferometer),
             }
+            common = {"world_dir": world_dir, "world": world_section, "truth_path": str(truth_path)}
             for name in TWIN_NAMES:  # launched together: their start-ups overlap
-                process = TwinProcess("sim_devices._cell_twins:CellTwin",
-                                      {"kind": name, "world_dir": world_dir, "world": world_section,
-                                       "truth_path": str(truth_path), "settings": settings[name]},
-                                      start_timeout=60.0, call_timeout=30.0, name=f"{name} twin")
-                handle = self._twins[name] = TwinHandle(name, process)
-                self._started.append((name, handle))
-                process.launch()
+                self._launch(name, {**common, "kind": name, "settings": settings[name]})
             for name in TWIN_NAMES:
-                self.endpoints[name] = self._twins[name].process.wait_started()
+                self.endpoints[name] = self._wait_started(name, common, settings)
             self._monitor = threading.Thread(target=self._watch_twins, name="cell-monitor", daemon=True)
             self._monitor.start()
             self._control = ControlServer(self.control)
@@ -301,6 +296,28 @@ class CellHost:
             self.stop()
             raise
         return self.endpoints
+
+    def _launch(self, name: str, kwargs: dict[str, Any]) -> None:
+        process = TwinProcess("sim_devices._cell_twins:CellTwin", kwargs, start_timeout=60.0, call_timeout=30.0,
+                              name=f"{name} twin")
+        handle = self._twins[name] = TwinHandle(name, process)
+        self._started.append((name, handle))
+        process.launch()
+
+    def _wait_started(self, name: str, common: dict[str, Any], settings: dict[str, dict[str, Any]]) -> dict[str, Any]:
+        """The twin's endpoints; the robot moves to another free loopback address if its ports were
+        taken between the check and its bind (another cell starting at the same time)."""
+        tried: list[str] = []
+        while True:
+            try:
+                return self._twins[name].process.wait_started()
+            except TwinProcessError as exc:
+                if name != "robot" or self.robot_host or "cannot bind" not in str(exc) or len(tried) >= 5:
+                    raise
+                tried.append(settings["robot"]["host"])
+                self._started = [(n, h) for n, h in self._started if h is not self._twins[name]]
+                settings["robot"]["host"] = free_loopback_host(exclude=tuple(tried))
+                self._launch(name, {**common, "kind": name, "settings": settings[name]})
 
     def stop(self) -> None:
         """Stop everything started, even when one part fails to stop; then report the failures."""

@@ -321,3 +321,35 @@ def test_a_blocking_move_returns_once_the_cameras_show_its_final_pose(tmp_path):
             assert cell.forward("cameras", "stats")["announced"] == 6
         finally:
             control.disconnect()
+
+
+def test_the_robot_moves_to_another_address_when_its_ports_were_taken_meanwhile(tmp_path, monkeypatch):
+    """Another cell may bind the address between the supervisor's check and the robot process's bind."""
+    import sim_devices.cell as cell_module
+
+    taken = cell_module.free_loopback_host(first=230, last=240)
+    holders = []
+    for port in UR_PORTS:
+        holder = socket.socket()
+        holder.bind((taken, port))
+        holder.listen(1)
+        holders.append(holder)
+    picks: list[str] = []
+    real = cell_module.free_loopback_host
+
+    def pick(first: int = 2, last: int = 254, exclude: tuple[str, ...] = ()) -> str:
+        picks.append(taken if not picks else real(first=231, last=250, exclude=exclude))
+        return picks[-1]
+
+    monkeypatch.setattr(cell_module, "free_loopback_host", pick)
+    host = CellHost(str(tmp_path / "cell"), seed=2)
+    try:
+        endpoints = host.start()
+        assert picks[0] == taken and endpoints["robot"]["host"] == picks[-1] != taken
+        assert host.status()["robot"]["alive"]
+        station = yaml.safe_load(Path(endpoints["station"]).read_text())
+        assert station["devices"]["robot"]["host"] == picks[-1]
+    finally:
+        host.stop()
+        for holder in holders:
+            holder.close()

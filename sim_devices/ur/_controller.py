@@ -646,7 +646,8 @@ class URController:
                 "safety_mode": self.safety_mode,
                 "safety_status_bits": self.safety_bits,
                 "program": getattr(self.program, "name", None),
-                "payload": {"mass": self.payload_mass, "cog": self.payload_cog.tolist()},
+                "payload": self.payload_mass,
+                "payload_cog": self.payload_cog.tolist(),
                 "late_cycles": self.late_cycles,
                 "skipped_cycles": self.skipped_cycles,
             }
