@@ -11,8 +11,8 @@ A host object has ``start() -> dict`` (endpoints), ``stop() -> None`` and
 No child outlives its parent: the child stops its host when the control pipe reports end-of-file
 (the parent's end closes with the parent, even on SIGKILL) or when its parent process id changes
 (checked four times a second), and exits by force if stopping takes longer than ``STOP_GRACE``.
-A child ignores SIGINT (Ctrl-C in a terminal reaches the whole process group: the parent decides)
-and stops cleanly on SIGTERM.
+A child runs in a session of its own and ignores SIGINT (the parent decides when it stops), and
+stops cleanly on SIGTERM.
 """
 
 from __future__ import annotations
@@ -52,6 +52,10 @@ def _hard_exit_later(seconds: float) -> None:
 
 
 def _child_main(factory_path: str, kwargs: dict[str, Any], conn: Connection, parent_pid: int) -> None:
+    # A twin is a device of its own: its own session, so a terminal's signals do not reach it and,
+    # with the kernel's autogroup scheduling, busy processes of another session (a test run, a CPU
+    # burner) share the CPU with it as one group instead of crowding it out thread by thread.
+    os.setsid()
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     # The parent marks us daemonic (it terminates us if it exits without stopping us), and
     # multiprocessing refuses children to daemonic processes. A host may run twin processes of its

@@ -123,6 +123,7 @@ class TwinHandle:
         self.name = name
         self.process = process
         self.died: int | None = None  # exit code, once the twin died while the cell ran
+        self.realtime = False  # its threads run under SCHED_RR (the robot and interferometer, if allowed)
 
     @property
     def endpoints(self) -> dict[str, Any]:
@@ -149,7 +150,7 @@ class TwinHandle:
             raise RuntimeError(str(exc)) from None
 
     def status(self) -> dict[str, Any]:
-        return {"pid": self.pid, "alive": self.alive, "exitcode": self.died}
+        return {"pid": self.pid, "alive": self.alive, "exitcode": self.died, "realtime": self.realtime}
 
     def stop(self) -> None:
         self.process.stop()
@@ -279,6 +280,7 @@ class CellHost:
                 self._launch(name, {**common, "kind": name, "settings": settings[name]})
             for name in TWIN_NAMES:
                 self.endpoints[name] = self._wait_started(name, common, settings)
+                self._twins[name].realtime = bool(self._twins[name].control("cell.realtime"))
             self._monitor = threading.Thread(target=self._watch_twins, name="cell-monitor", daemon=True)
             self._monitor.start()
             self._control = ControlServer(self.control)
@@ -387,7 +389,8 @@ class CellHost:
         return "pong"
 
     def status(self) -> dict[str, dict[str, Any]]:
-        """Each twin's process: ``pid``, ``alive`` and, for one that died, its ``exitcode``."""
+        """Each twin's process: ``pid``, ``alive``, for one that died its ``exitcode``, and ``realtime``
+        (its threads run under SCHED_RR: the robot and the interferometer, where the system allows it)."""
         if not self._twins:
             raise CellNotRunning("simulated cell: not running (start the cell first)")
         return {name: handle.status() for name, handle in self._twins.items()}

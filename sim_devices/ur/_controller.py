@@ -514,7 +514,9 @@ class URController:
             flange = run.planned_flange  # exactly what was announced: the cameras' early frames fit
         else:
             flange = self._attained_flange(commanded, motion.start_pose, motion.t_end, run.noise, run.tcp_offset)
+        publishing = time.monotonic()
         self.world.set_flange_pose(flange, settled=True, source="robot")
+        published_in = time.monotonic() - publishing  # until every twin of the cell had seen it
         attained = flange @ pose6_to_matrix(run.tcp_offset)
         with self.lock:
             self.visits.append({
@@ -526,6 +528,7 @@ class URController:
                 "stopped": motion.stopped,
                 "settling_time": run.settled_at - motion.t_end,
                 "end_timestamp": run.end_cycle * self.period,  # RTDE timestamp of the first package at rest
+                "publish_wait": published_in,  # wall s the settled pose took to reach every subscriber
             })
             del self.visits[:-10_000]
         # The final pose has been streamed since ``end_cycle``; give every client a cycle or two to
