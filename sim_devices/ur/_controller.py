@@ -72,7 +72,7 @@ JOINT_RUNNING_MODE = 253
 MID_MOVE_FAULTS = (FaultKind.PROTECTIVE_STOP, FaultKind.EMERGENCY_STOP, FaultKind.PROGRAM_STOPPED,
                    FaultKind.DISCONNECT)
 MAX_CATCH_UP = 250  # slots a late cycle thread makes up for (0.5 s); beyond that it resynchronises
-DONE_AFTER_CYCLES = 5  # "done" goes out this many cycles (10 ms) after the final pose was first streamed
+DONE_AFTER_CYCLES = 2  # "done" goes out this many cycles (4 ms) after the final pose was first streamed
 
 # A coarse UR5e mass model for the joint currents: link masses (kg) at the middle of each link,
 # torque constants (N·m/A, gear included) and reflected inertias (kg·m²) per joint.
