@@ -118,6 +118,11 @@ def client_process(realtime: bool) -> None:
         os.sched_setscheduler(0, os.SCHED_RR, os.sched_param(10))
 
 
+def normal_priority() -> None:
+    if os.sched_getscheduler(0) != os.SCHED_OTHER:
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+
+
 def collect_feed(config: dict, duration: float, results, realtime: bool) -> None:
     """In its own process and session (a lab host's driver process): every sample of one transport."""
     client_process(realtime)
@@ -139,6 +144,7 @@ def collect_feed(config: dict, duration: float, results, realtime: bool) -> None
         error, after, before = str(exc), {"lost_samples": 0, "gaps": 0}, {"lost_samples": 0, "gaps": 0}
     finally:
         device.close()
+    normal_priority()
     a = np.array(stamps)
     jitter = np.abs(np.diff(a) - 1e-3) * 1e3 if len(a) > 1 else np.array([np.nan])
     results.put({"name": name, "samples": len(a), "rate": (len(a) - 1) / (a[-1] - a[0]) if len(a) > 1 else 0.0,
@@ -153,6 +159,7 @@ def collect_rtde(host: str, duration: float, ends: list[list[float]], results, r
     with RTDEProbe(host, PROBE_FIELDS) as probe:
         time.sleep(duration)
         packages = probe.take()
+    normal_priority()  # seconds of forward kinematics follow: not at real-time priority
     results.put({"name": "rtde", **check_packages(packages, ends)})
 
 
