@@ -12,14 +12,28 @@ from pathlib import Path
 from typing import Any
 
 from procedures._engine import RunEngine, create_run
-from procedures._errors import RunError
+from procedures._errors import ConfigError, RunError
+from procedures._files import InputRefused, read_text_file
 from procedures._hooks import HookRunner
 from procedures._loading import load_procedure, load_station, resolve_procedure_path
 from procedures._models import HookSpec, StationFile
 from procedures._run_state import PauseDecision
 from procedures._science import InstrumentScience, Science
 from procedures._station import Operator, StationRuntime
-from procedures._store import RunStore
+from procedures._store import Lease, RunStore
+
+
+def with_earlier_truth(station: StationFile, before: StationFile) -> StationFile:
+    """``station`` (a new simulated cell for a resumed run) remembering the truth logs of the cells
+    the run was measured on ``before``, so its report keeps the truth of every sample."""
+    if station.simulation is None or before.simulation is None:
+        return station
+    earlier = [*before.simulation.earlier_truth_logs, before.simulation.truth_log,
+               *station.simulation.earlier_truth_logs]
+    kept = [path for i, path in enumerate(earlier)
+            if path and path not in earlier[:i] and path != station.simulation.truth_log]
+    simulation = station.simulation.model_copy(update={"earlier_truth_logs": kept})
+    return station.model_copy(update={"simulation": simulation})
 
 
 @contextmanager
@@ -41,10 +55,12 @@ def open_engine(
 
     On resume the station snapshot stored with the run is used, unless ``station`` names a file
     (e.g. a freshly started simulated cell); its frames and envelope must equal the snapshot's.
-    Devices are closed (after the engine has brought them to a safe state) when the block ends.
+    The process holds the run's lease for the whole block (``RunLocked`` if another live process
+    does). Devices are closed (after the engine has brought them to a safe state) when the block ends.
     """
     store = RunStore(runs_dir)
     runtime = None
+    lease: Lease | None = None
     try:
         # A custom science (a test's fake) has no geometry to judge the station's with.
         custom_science = science is not None
@@ -53,16 +69,21 @@ def open_engine(
             if procedure is None or station is None:
                 raise RunError("a new run needs a procedure and a station")
             procedure_path = resolve_procedure_path(procedure)
-            text = procedure_path.read_text(encoding="utf-8")
+            try:
+                text = read_text_file(procedure_path, what="procedure file")
+            except InputRefused as exc:
+                raise ConfigError([str(exc)]) from None
             proc = load_procedure(procedure_path, text)
             station_model = load_station(station, check_geometry=not custom_science)
             runtime = StationRuntime(station_model, devices=devices, operator=operator)
             run_id = create_run(store, proc, runtime, science, procedure_file=str(procedure_path.resolve()),
                                 procedure_text=text, station_path=str(Path(station).resolve()))
+            lease = store.acquire_lease(run_id)
         else:
             run = store.get_run(run_id)
             run_id = str(run["id"])
-            proc = load_procedure(run["procedure_file"] or f"run {run_id}", run["procedure_text"])
+            lease = store.acquire_lease(run_id)  # before anything of the run is touched
+            proc = load_procedure(run["procedure_file"] or f"run {run_id}", run["procedure_text"], stored=True)
             snapshot = StationFile.model_validate(run["station"])
             if station is not None:
                 station_model = load_station(station, check_geometry=not custom_science)
@@ -70,16 +91,21 @@ def open_engine(
                     if getattr(station_model, part) != getattr(snapshot, part):
                         raise RunError(f"station {station}: its {part} differ from the run's snapshot; "
                                        "resume on the station the run started on")
+                station_model = with_earlier_truth(station_model, snapshot)
                 store.update_run(run_id, station=station_model.model_dump(), station_path=str(Path(station).resolve()))
             else:
                 station_model = snapshot
             runtime = StationRuntime(station_model, devices=devices, operator=operator)
         hooks = HookRunner([*station_model.hooks, *proc.hooks, *extra_hooks])
         engine = RunEngine(store, run_id, proc, runtime, science, hooks=hooks, listener=listener,
-                           pause_handler=pause_handler, pause_timeout_s=pause_timeout_s)
+                           pause_handler=pause_handler, pause_timeout_s=pause_timeout_s, lease=lease)
         yield engine
     finally:
-        if runtime is not None:
-            runtime.safe_state()
-            runtime.close()
-        store.close()
+        try:
+            if runtime is not None:
+                runtime.safe_state()
+                runtime.close()
+        finally:
+            if lease is not None:
+                store.release_lease(lease)
+            store.close()

@@ -3,9 +3,8 @@
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 
-from procedures._cli_common import add_runs_dir, find_run, open_store
+from procedures._cli_common import add_runs_dir, find_run, open_store, write_output
 
 
 def register(subparsers) -> None:
@@ -27,9 +26,10 @@ def run(args) -> int:
         if r is None:
             return 1
         samples = store.samples(r["id"])
-        text = export_csv(samples) if args.csv else export_json(r, samples, store.events(r["id"]))
+        text = export_csv(samples) if args.csv else export_json(r, samples, store.events(r["id"]),
+                                                                store.superseded_samples(r["id"]))
     if args.output:
-        Path(args.output).write_text(text, encoding="utf-8")
+        write_output(args.output, text)
     else:
         sys.stdout.write(text)
     return 0

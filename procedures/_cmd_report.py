@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from procedures._cli_common import add_runs_dir, find_run, open_store
+from procedures._cli_common import add_runs_dir, find_run, open_store, write_output
 
 
 def register(subparsers) -> None:
@@ -22,8 +22,8 @@ def run(args) -> int:
         r = find_run(store, args.run_id)
         if r is None:
             return 1
-        html = render_report(r, store.samples(r["id"]), store.events(r["id"]))
+        html = render_report(r, store.samples(r["id"]), store.events(r["id"]), store.superseded_samples(r["id"]))
         path = Path(args.output) if args.output else store.run_dir(r["id"]) / "report.html"
-    path.write_text(html, encoding="utf-8")
+    write_output(path, html)
     print(path)
     return 0

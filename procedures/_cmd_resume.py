@@ -4,8 +4,19 @@ from __future__ import annotations
 
 import sys
 
-from procedures._cli_common import Display, add_display, add_runs_dir, console_pause_handler, drive, station_for
-from procedures._errors import ConfigError, RunError
+from procedures._cli_common import (
+    Display,
+    add_display,
+    add_runs_dir,
+    add_seed,
+    console_pause_handler,
+    detach_at_once,
+    drive,
+    open_store,
+    seconds_value,
+    station_for,
+)
+from procedures._errors import RunLocked
 
 
 def register(subparsers) -> None:
@@ -13,8 +24,9 @@ def register(subparsers) -> None:
     parser.add_argument("run_id", metavar="RUN", help="run id (a unique prefix is enough)")
     parser.add_argument("--station", default=None,
                         help="station YAML (default: the run's station snapshot), or 'sim' for a new simulated cell")
-    parser.add_argument("--seed", type=int, default=None, help="simulated cell seed (default: the run's)")
-    parser.add_argument("--pause-timeout", type=float, default=3600.0)
+    add_seed(parser, None)
+    parser.add_argument("--pause-timeout", type=seconds_value, default=3600.0,
+                        help="seconds a paused run waits before it is left paused (non-interactive)")
     add_runs_dir(parser)
     add_display(parser)
     parser.set_defaults(handler=run)
@@ -22,26 +34,28 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
     from procedures._api import open_engine
-    from procedures._store import RunStore
 
-    with RunStore(args.runs_dir) as store:
+    with open_store(args) as store:
         try:
             stored = store.get_run(args.run_id)
         except KeyError as exc:
             print(exc.args[0], file=sys.stderr)
             return 1
-    seed = (
-        args.seed
-        if args.seed is not None
-        else int(((stored["station"] or {}).get("simulation") or {}).get("seed") or 0)
-    )
+        # Checked before a simulated cell is started for nothing; open_engine takes the lease for real.
+        holder = store.lease_holder(stored["id"])
+        if holder is not None:
+            raise RunLocked(f"run {stored['id']} is already being run by pid {holder['pid']} on {holder['host']}; "
+                            "wait for it to end or stop that process")
+    seed = args.seed if args.seed is not None else _stored_seed(stored)
     mode = "jsonl" if args.jsonl else "quiet" if args.quiet else "bar"
-    try:
-        with station_for(args.station, args.runs_dir, seed) as station:
-            with open_engine(args.runs_dir, run_id=stored["id"], station=station, listener=Display(mode),
-                             pause_handler=None if args.jsonl else console_pause_handler,
-                             pause_timeout_s=args.pause_timeout) as engine:
-                return drive(engine, args)
-    except (ConfigError, RunError) as exc:
-        print(str(exc), file=sys.stderr)
-        return 1
+    with station_for(args.station, args.runs_dir, seed) as station:
+        with open_engine(args.runs_dir, run_id=stored["id"], station=station, listener=Display(mode),
+                         pause_handler=detach_at_once if args.jsonl else console_pause_handler,
+                         pause_timeout_s=args.pause_timeout) as engine:
+            return drive(engine, args)
+
+
+def _stored_seed(run: dict) -> int:
+    """The simulated cell's seed in the run's station snapshot (0 if it has none usable)."""
+    seed = ((run["station"] or {}).get("simulation") or {}).get("seed")
+    return seed if isinstance(seed, int) and 0 <= seed < 2**32 else 0

@@ -5,8 +5,17 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from procedures._cli_common import Display, add_display, add_runs_dir, console_pause_handler, drive, station_for
-from procedures._errors import ConfigError, RunError
+from procedures._cli_common import (
+    Display,
+    add_display,
+    add_runs_dir,
+    add_seed,
+    console_pause_handler,
+    detach_at_once,
+    drive,
+    seconds_value,
+    station_for,
+)
 
 
 def register(subparsers) -> None:
@@ -14,8 +23,8 @@ def register(subparsers) -> None:
     built_in = ", ".join(sorted(path.stem for path in Path(__file__).parent.glob("*.yaml")))
     parser.add_argument("procedure", metavar="PROCEDURE", help=f"procedure file, or a built-in name ({built_in})")
     parser.add_argument("--station", required=True, help="station YAML, or 'sim' to start the simulated cell")
-    parser.add_argument("--seed", type=int, default=0, help="simulated cell seed (with --station sim)")
-    parser.add_argument("--pause-timeout", type=float, default=3600.0,
+    add_seed(parser, 0)
+    parser.add_argument("--pause-timeout", type=seconds_value, default=3600.0,
                         help="seconds a paused run waits before it is left paused (non-interactive)")
     add_runs_dir(parser)
     add_display(parser)
@@ -26,14 +35,10 @@ def run(args) -> int:
     from procedures._api import open_engine
 
     mode = "jsonl" if args.jsonl else "quiet" if args.quiet else "bar"
-    try:
-        with station_for(args.station, args.runs_dir, args.seed) as station:
-            with open_engine(args.runs_dir, procedure=args.procedure, station=station, listener=Display(mode),
-                             pause_handler=None if args.jsonl else console_pause_handler,
-                             pause_timeout_s=args.pause_timeout) as engine:
-                if not args.jsonl:
-                    print(f"run {engine.run_id} ({engine.procedure.procedure})", file=sys.stderr)
-                return drive(engine, args)
-    except (ConfigError, RunError) as exc:
-        print(str(exc), file=sys.stderr)
-        return 1
+    with station_for(args.station, args.runs_dir, args.seed) as station:
+        with open_engine(args.runs_dir, procedure=args.procedure, station=station, listener=Display(mode),
+                         pause_handler=detach_at_once if args.jsonl else console_pause_handler,
+                         pause_timeout_s=args.pause_timeout) as engine:
+            if not args.jsonl:
+                print(f"run {engine.run_id} ({engine.procedure.procedure})", file=sys.stderr)
+            return drive(engine, args)

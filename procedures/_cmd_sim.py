@@ -11,15 +11,18 @@ from typing import Any
 
 import yaml
 
+from procedures._cli_common import seconds_value, seed_value
+from procedures._files import InputRefused, read_text_file
+
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser("sim", help="run the simulated cell (all twins) until Ctrl-C")
     parser.add_argument("--config", type=Path, help="cell YAML (sections: world, optics, robot, rotary_table, "
                                                     "interferometer; optional 'seed', 'time_scale')")
-    parser.add_argument("--seed", type=int, default=None, help="seed of every random stream (default 0)")
+    parser.add_argument("--seed", type=seed_value, default=None, help="seed of every random stream (default 0)")
     parser.add_argument("--directory", type=Path, default=Path("sim_runs/cell"),
                         help="where frames, truth log and station.yaml go (default sim_runs/cell)")
-    parser.add_argument("--time-scale", type=float, default=None, help="simulated time per wall second")
+    parser.add_argument("--time-scale", type=seconds_value, default=None, help="simulated time per wall second")
     parser.add_argument("--robot-host", default=None, help="loopback address for the UR twin (127.0.0.N)")
     parser.add_argument("--json", action="store_true", help="print the endpoints as one JSON line")
     parser.set_defaults(handler=run)
@@ -31,8 +34,8 @@ def run(args) -> int:
     config: dict[str, Any] = {}
     if args.config:
         try:
-            config = yaml.safe_load(args.config.read_text()) or {}
-        except (OSError, yaml.YAMLError) as exc:
+            config = yaml.safe_load(read_text_file(args.config, what="cell configuration")) or {}
+        except (InputRefused, yaml.YAMLError, RecursionError) as exc:
             print(f"instrument sim: cannot read {args.config}: {exc}", file=sys.stderr)
             return 2
         if not isinstance(config, dict):

@@ -6,14 +6,21 @@ analysis at the end. It knows no kind by name.
 
 States (``RunState``): QUEUED → RUNNING → (PAUSED ⇄ RUNNING) → FINISHED | FAILED | ABORTED.
 Pauses happen only at safe points (between poses): on request (one Ctrl-C), or when the robot
-reports a protective stop. An abort (two Ctrl-C, or the cell) stops the robot and the table
-first, whatever else fails.
+reports a protective stop. An abort (two Ctrl-C, SIGTERM/SIGHUP, or the cell) stops the robot and
+the table first, whatever else fails.
+
+Each ``execute()`` is one **session** of the run. A session skips the steps stored as measured
+and measures every other one, including steps a previous session stored as failed (their failed
+sample is kept as superseded). ``max_failed_samples`` counts the failed poses of this session only,
+so a resumed run is never failed by the failures it came to repair. Every state change is a
+compare-and-set on the state this engine last wrote and on its lease (``RunStore``).
 """
 
 from __future__ import annotations
 
 import threading
 import time
+import traceback
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -23,17 +30,18 @@ import numpy as np
 from drivers import DeviceError
 from drivers.robot import EmergencyStop, ProtectiveStop
 from instrument import __version__
-from procedures._dry_run import plan_problems
+from procedures._dry_run import collapse, plan_problems
 from procedures._errors import DryRunFailed, RunAborted, RunError
+from procedures._files import InputRefused
 from procedures._hooks import HookRunner
 from procedures._models import Event, StationFile
 from procedures._run_state import RESUMABLE_STATES, PauseDecision, RunState
 from procedures._science import Compensator, Science
 from procedures._station import StationRuntime
 from procedures._step_context import StationStepContext
-from procedures._store import RunStore
+from procedures._store import Lease, RunStore
 from procedures._truth import TruthLog
-from procedures.kinds import RESTING_SETUP, AnalysisContext, ProcedureBase, Setup, Step, kind_of
+from procedures.kinds import RESTING_SETUP, AnalysisContext, PoseReading, ProcedureBase, Setup, Step, kind_of
 
 _MAX_PROBLEMS_SHOWN = 50
 
@@ -42,18 +50,35 @@ class _Detached(Exception):
     """The run stays PAUSED in the store; ``instrument resume`` continues it later."""
 
 
-def compensators_in_force(station: StationFile, science: Science) -> list[Compensator]:
-    """The compensators named by the station's ``calibration.record`` (a path or a list of paths)."""
+def record_paths(station: StationFile) -> list[str]:
+    """The calibration record files the station's ``calibration.record`` names (one path, a list, or none)."""
     record = station.calibration.record
-    paths = [] if not record else ([record] if isinstance(record, str) else list(record))
-    return [science.load_compensator(path) for path in paths]
+    return [] if not record else ([record] if isinstance(record, str) else list(record))
+
+
+def compensators_in_force(station: StationFile, science: Science) -> list[Compensator]:
+    """The compensators of the station's calibration records; a record that cannot be read is a ``RunError``."""
+    compensators = []
+    for path in record_paths(station):
+        try:
+            compensators.append(science.load_compensator(path))
+        except InputRefused as exc:
+            raise RunError(f"calibration.record: {exc}") from None
+        except OSError as exc:
+            raise RunError(f"calibration.record: cannot read {path}: {exc.strerror or exc}") from None
+        except (ValueError, KeyError, TypeError) as exc:
+            raise RunError(f"calibration.record: {path} is not a calibration record: {exc}") from None
+    return compensators
 
 
 def _truth_log(station: StationFile) -> TruthLog | None:
+    """The simulated cell's truth, from every cell the run was measured on (a resumed run may have
+    been measured on several; their logs are merged by time)."""
     sim = station.simulation
-    if sim is None or not sim.truth_log or not Path(sim.truth_log).is_file():
+    if sim is None:
         return None
-    return TruthLog.read(sim.truth_log)
+    paths = [path for path in [*sim.earlier_truth_logs, sim.truth_log] if path and Path(path).is_file()]
+    return TruthLog.read(*paths) if paths else None
 
 
 def create_run(store: RunStore, procedure: ProcedureBase, station: StationRuntime, science: Science, *,
@@ -94,17 +119,19 @@ class RunEngine:
                  science: Science, *, hooks: HookRunner | None = None,
                  listener: Callable[[dict[str, Any]], None] | None = None,
                  pause_handler: Callable[[RunEngine], PauseDecision] | None = None,
-                 pause_timeout_s: float = 3600.0) -> None:
+                 pause_timeout_s: float = 3600.0, lease: Lease | None = None) -> None:
         self.store, self.run_id, self.procedure, self.station, self.science = store, run_id, procedure, station, science
         self.kind = kind_of(procedure)
         self.params = procedure.parameters
         self.hooks = hooks or HookRunner()
-        if self.hooks.on_failure is None:
-            self.hooks.on_failure = lambda message, event: self.store.log(self.run_id, "hook_failed", message)
         self.listener = listener
         self.pause_handler = pause_handler
         self.pause_timeout_s = pause_timeout_s
+        self.lease = lease
         self.state = RunState(store.get_run(run_id)["state"])
+        self.resumes = 0  # pauses this session has come back from (the Ctrl-C handler counts presses per resume)
+        self.ending = False  # the session is being ended (its outcome is being recorded, or is)
+        self.session_failures = 0
         self._pause_request = threading.Event()
         self._pause_reason = "operator request"
         self._abort_request = threading.Event()
@@ -139,8 +166,9 @@ class RunEngine:
         return payload
 
     def _set_state(self, state: RunState, *, reason: str | None = None, hook: Event | None = None) -> None:
+        # Compare-and-set: only from the state this engine last wrote, and only while it holds the lease.
+        self.store.set_state(self.run_id, state, reason=reason, expected=self.state, lease=self.lease)
         self.state = state
-        self.store.set_state(self.run_id, state, reason=reason)
         payload = self._emit("state", state=state, reason=reason)
         if hook:
             self.hooks.emit({**payload, "event": hook})
@@ -157,15 +185,24 @@ class RunEngine:
     def _log(self, kind: str, message: str) -> None:
         self.store.log(self.run_id, kind, message)
 
+    def _log_hook_failures(self) -> None:
+        for message in self.hooks.take_failures():
+            self.store.log(self.run_id, "hook_failed", message)
+
     # ------------------------------------------------------------------------------------- run
     def execute(self) -> RunState:
-        """Run to the end (or to a pause that is detached). Returns the final state."""
+        """Run to the end (or to a pause that is detached): one session. Returns the final state."""
         run = self.store.get_run(self.run_id)
         stored = RunState(run["state"])
         if not stored.resumable:
             raise RunError(f"run {self.run_id} is {stored}; only {', '.join(RESUMABLE_STATES)} runs can be continued")
-        committed = self.store.committed_steps(self.run_id)
-        resuming = bool(committed) or stored != RunState.QUEUED
+        self.state = stored
+        measured = self.store.measured_steps(self.run_id)
+        to_repeat = self.store.committed_steps(self.run_id) - measured  # failed in an earlier session
+        resuming = bool(measured or to_repeat) or stored != RunState.QUEUED
+        self.session_failures = 0
+        last_failure = ""
+        self.ending = False
         try:
             self.science.configure(self.station.model)
             self.plan = self.kind.plan(self.params, self.station.model)
@@ -177,45 +214,60 @@ class RunEngine:
             context = StationStepContext(self.station, self.params, self.science, compensators=self.compensators,
                                          wait=self._wait, check_abort=self._check_abort, log=self._log,
                                          run_dir=self.store.run_dir(self.run_id))
-            self._set_state(RunState.RUNNING, hook="run_resumed" if resuming else "run_started",
-                            reason=f"resumed after {len(committed)} committed samples" if resuming else None)
-            self.dry_run(committed)
-            failed = sum(1 for s in self.store.samples(self.run_id) if not s.ok)
+            reason = None
+            if resuming:
+                reason = f"resumed after {len(measured)} measured samples" + (
+                    f"; {len(to_repeat)} failed poses to measure again" if to_repeat else "")
+            self._set_state(RunState.RUNNING, hook="run_resumed" if resuming else "run_started", reason=reason)
+            self.dry_run(measured)
             for step in self.plan:
-                if step.index in committed:
+                if step.index in measured:
                     continue
                 self._safe_point()
                 while True:
                     try:
-                        ok = self._do_step(step, context)
+                        pose = self._do_step(step, context, repeat=step.index in to_repeat)
                         break
                     except (ProtectiveStop, EmergencyStop) as exc:
                         self.station.safe_state()
                         self._pause(f"{type(exc).__name__}: {exc}")  # then retry the same step
-                failed += 0 if ok else 1
-                if failed > self.params.max_failed_samples:
-                    raise RunError(f"{failed} poses could not be measured (limit max_failed_samples = "
-                                   f"{self.params.max_failed_samples})")
+                self._log_hook_failures()
+                if self.lease is not None:
+                    self.store.renew_lease(self.lease)
+                if not pose.ok:
+                    self.session_failures += 1
+                    last_failure = f"{step.key}: {pose.error}"
+                if self.session_failures > self.params.max_failed_samples:
+                    raise RunError(f"{self.session_failures} poses could not be measured in this session (limit "
+                                   f"max_failed_samples = {self.params.max_failed_samples}; the last: "
+                                   f"{last_failure}); resume to measure them again")
             self._safe_point()
             if self._setup is not None:
                 RESTING_SETUP.establish(self._setup, self.station)  # e.g. the OPR back from the table
             self._analyse()
             self._set_state(RunState.FINISHED, hook="run_finished")
         except _Detached:
-            return self.state
+            pass
         except DryRunFailed as exc:
-            self._set_state(RunState.FAILED, reason=str(exc), hook="run_failed")
+            self._end(RunState.FAILED, str(exc), "run_failed", stop_devices=False)
         except (RunAborted, KeyboardInterrupt) as exc:
-            problems = self.station.safe_state()
-            reason = str(exc) or "interrupted"
-            self._set_state(RunState.ABORTED, reason=reason + ("; " + "; ".join(problems) if problems else ""),
-                            hook="run_aborted")
+            self._end(RunState.ABORTED, str(exc) or "interrupted", "run_aborted")
         except Exception as exc:
-            problems = self.station.safe_state()
-            reason = f"{type(exc).__name__}: {exc}" if not isinstance(exc, (DeviceError, RunError)) else str(exc)
-            self._set_state(RunState.FAILED, reason=reason + ("; " + "; ".join(problems) if problems else ""),
-                            hook="run_failed")
+            expected = isinstance(exc, (DeviceError, RunError))
+            if not expected:  # a bug or an unforeseen failure: the operator gets one line, the log the traceback
+                self._log("traceback", traceback.format_exc())
+            self._end(RunState.FAILED, str(exc) if expected else f"{type(exc).__name__}: {exc}", "run_failed")
+        finally:
+            self.ending = True  # the outcome is stored: a late SIGTERM must not cut the hooks' last words
+            self.hooks.close()  # bounded by the longest hook deadline; undelivered events are reported
+            self._log_hook_failures()
         return self.state
+
+    def _end(self, state: RunState, reason: str, hook: Event, *, stop_devices: bool = True) -> None:
+        """End the session early: devices stopped first, then the state and reason stored."""
+        self.ending = True
+        problems = self.station.safe_state() if stop_devices else []
+        self._set_state(state, reason=reason + ("; " + "; ".join(problems) if problems else ""), hook=hook)
 
     def _analyse(self) -> None:
         context = AnalysisContext(run_id=self.run_id, station=self.station.model, science=self.science,
@@ -231,8 +283,9 @@ class RunEngine:
         """Check the whole remaining plan before any motion (see ``procedures._dry_run``);
         raises ``DryRunFailed`` listing the problems."""
         todo = [s for s in self.plan if s.index not in committed]
-        problems = plan_problems(todo, self.kind.devices(self.params), self.station, self.science, self.params)
-        self.store.log(self.run_id, "dry_run", f"{len(todo)} steps checked, {len(problems)} problems",
+        found = plan_problems(todo, self.kind.devices(self.params), self.station, self.science, self.params)
+        problems = collapse(found)
+        self.store.log(self.run_id, "dry_run", f"{len(todo)} steps checked, {len(found)} problems",
                        {"problems": problems[:200]})
         self._emit("dry_run", steps=len(todo), problems=problems[:200])
         if problems:
@@ -267,6 +320,7 @@ class RunEngine:
         if decision == "detach":
             self.store.log(self.run_id, "detached", "left paused; continue with `instrument resume`")
             raise _Detached()
+        self.resumes += 1
         self._set_state(RunState.RUNNING, reason="resumed", hook="run_resumed")
 
     # ---------------------------------------------------------------------------------- steps
@@ -276,7 +330,8 @@ class RunEngine:
         self._emit("setup", setup=str(setup))
         self._setup = setup
 
-    def _do_step(self, step: Step, context: StationStepContext) -> bool:
+    def _do_step(self, step: Step, context: StationStepContext, *, repeat: bool = False) -> PoseReading:
+        """Move, measure and commit one step; ``repeat``: it failed in an earlier session."""
         t_start = time.time()
         new_setup = step.setup != self._setup
         if new_setup and not step.setup.after_motion:
@@ -288,13 +343,17 @@ class RunEngine:
         reading = self.kind.measure(step, self.params, context)
         pose = reading.pose
         commanded = {"tcp_pose": step.tcp_pose, "table_angle": step.table_angle, "nominal": step.meta.get("nominal")}
+        solved = None if pose.solved is None else {**pose.solved, "attempts": pose.attempts}
         self.store.add_sample(
             self.run_id, step.index, step.key, step.phase, label=step.label, ok=pose.ok, error=pose.error,
-            commanded=commanded, solved=pose.solved, corrected=pose.corrected, crosses=pose.crosses,
+            commanded=commanded, solved=solved, corrected=pose.corrected, crosses=pose.crosses,
             reference=reading.reference, meta=step.meta, frames=pose.frames, t_start=t_start,
             t_measured=pose.t_measured,
         )
         # Committed: from here on nothing can lose this sample.
+        if repeat:
+            self._log("remeasured", f"{step.key}: failed in an earlier session, measured again "
+                                    f"({'ok' if pose.ok else 'failed again'}); the failed sample is kept as superseded")
         self._durations.append(time.time() - t_start)
         event = self._emit("point_measured", step=step.index, key=step.key, label=step.label, ok=pose.ok,
                            error=pose.error, pose=pose.pose,
@@ -302,7 +361,7 @@ class RunEngine:
                            reference=reading.reference.get("value"))
         self.hooks.emit(event)
         self._emit_progress(step)
-        return pose.ok
+        return pose
 
     def _emit_progress(self, step: Step) -> None:
         done = len(self.store.committed_steps(self.run_id))

@@ -26,3 +26,11 @@ class DryRunFailed(RunError):
 
 class RunAborted(RunError):
     """The operator (or the cell) aborted the run."""
+
+
+class RunLocked(RunError):
+    """Another live process is running this run (it holds the run's lease)."""
+
+
+class StateConflict(RunError):
+    """The run's state changed under this process (another process, or a lost lease): nothing was written."""

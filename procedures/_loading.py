@@ -48,7 +48,8 @@ def _expected(error: ErrorDetails, types: list[Any]) -> str:
         return "required field is missing"
     text = msg[0].lower() + msg[1:] if msg else kind
     if kind not in ("value_error", "assertion_error") and "input" in error:
-        text += f" (got {error['input']!r})"
+        got = repr(error["input"])
+        text += f" (got {got if len(got) <= 80 else got[:60] + f'... ({len(got)} characters)'})"
     return text.replace("value error, ", "")
 
 
@@ -183,12 +184,18 @@ def resolve_procedure_path(name_or_path: str | Path) -> Path:
     for candidate in (PACKAGE_DIR / f"{name_or_path}.yaml", PACKAGE_DIR / str(name_or_path)):
         if candidate.is_file():
             return candidate
+    if path.exists():  # a folder, FIFO or device: the reader says why it is no procedure file
+        return path
     raise ConfigError([f"{name_or_path}: no such procedure file (and no built-in procedure of that name; "
                        f"built-ins: {', '.join(sorted(KINDS))})"])
 
 
-def load_procedure(path: str | Path, text: str | None = None) -> ProcedureBase:
-    """Parse and validate a procedure file: ``procedure:`` names the kind, whose model checks the rest."""
+def load_procedure(path: str | Path, text: str | None = None, *, stored: bool = False) -> ProcedureBase:
+    """Parse and validate a procedure file: ``procedure:`` names the kind, whose model checks the rest.
+
+    ``stored``: the text of a run already in the store (resumed): rules made for new runs after it
+    was queued (e.g. at least 2 repeats) do not refuse it; the plan-size limit still holds.
+    """
     marked = load_marked(path, text)
     data = marked.data
     if not isinstance(data, dict):
@@ -201,7 +208,7 @@ def load_procedure(path: str | Path, text: str | None = None) -> ProcedureBase:
                            f"{', '.join(KINDS)} ({got})"])
     model = kind.file_model
     try:
-        return model.model_validate(data)
+        return model.model_validate(data, context={"stored": stored})
     except ValidationError as exc:
         raise ConfigError(_problems(exc, marked, model)) from None
 

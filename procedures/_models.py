@@ -33,7 +33,25 @@ def _every_event() -> list[Event]:
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    # Unknown keys are typos; NaN and infinity are never a setting (a NaN target passes every `<` check).
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+
+def _finite_numbers(value: Any, where: str = "") -> str | None:
+    """The path of the first NaN or infinite number inside ``value`` (mappings and lists), or None."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return where or "(value)"
+    if isinstance(value, dict):
+        items: Any = value.items()
+    elif isinstance(value, list):
+        items = enumerate(value)
+    else:
+        return None
+    for key, item in items:
+        found = _finite_numbers(item, f"{where}[{key!r}]" if isinstance(key, int) else f"{where}.{key}")
+        if found:
+            return found
+    return None
 
 
 # ------------------------------------------------------------------------------------------ hooks
@@ -150,12 +168,24 @@ class SimulationConfig(BaseModel):
     model_config = ConfigDict(extra="allow")
     control: ControlEndpoint | None = None
     truth_log: str | None = Field(None, description="ground-truth JSON-lines log of the simulated world")
+    earlier_truth_logs: list[str] = Field(
+        default_factory=list, description="truth logs of the cells a resumed run was measured on before this one "
+        "(kept by the engine, so a report keeps the truth of every sample)")
 
 
 class StationFile(_Strict):
     name: str
     devices: DevicesConfig
     geometry: dict[str, Any] = Field(description="screen geometry, read by instrument.pose.Geometry.from_dict")
+
+    @field_validator("geometry")
+    @classmethod
+    def _finite_geometry(cls, value: dict[str, Any]) -> dict[str, Any]:
+        where = _finite_numbers(value)
+        if where:
+            raise ValueError(f"expected finite numbers; {where.lstrip('.')} is NaN or infinite")
+        return value
+
     frames: FramesConfig
     envelope: EnvelopeConfig
     calibration: CalibrationConfig = Field(default_factory=CalibrationConfig)

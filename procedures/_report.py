@@ -36,8 +36,12 @@ def _results_html(run: dict[str, Any]) -> str:
     return kind.report_html(results)
 
 
-def render_report(run: dict[str, Any], samples: Sequence[Sample], events: Sequence[dict[str, Any]]) -> str:
-    """The whole report as one HTML string (inline CSS and SVG, no external resources)."""
+def render_report(run: dict[str, Any], samples: Sequence[Sample], events: Sequence[dict[str, Any]],
+                  superseded: Sequence[Sample] = ()) -> str:
+    """The whole report as one HTML string (inline CSS and SVG, no external resources).
+
+    ``superseded``: failed samples that a later session measured again (listed with the failed poses).
+    """
     ok = sum(1 for s in samples if s.ok)
     header = (f"<h1>{escape(run.get('procedure_name') or run['procedure'])}</h1><table>"
               + "".join(f"<tr><th class=l>{k}</th><td class=l>{v}</td></tr>" for k, v in (
@@ -52,14 +56,15 @@ def render_report(run: dict[str, Any], samples: Sequence[Sample], events: Sequen
                   ("samples", f"{ok} measured, {len(samples) - ok} failed, of {run.get('total_steps')} planned"),
               )) + "</table>")
     body = _results_html(run)
-    failed = [s for s in samples if not s.ok]
+    failed = [(s, "failed") for s in samples if not s.ok] + [(s, "measured again later") for s in superseded]
     failed_html = (
         (
-            "<h2>Failed poses</h2><table><tr><th class=l>step</th><th class=l>error</th><th class=l>frames</th></tr>"
+            "<h2>Failed poses</h2><table><tr><th class=l>step</th><th class=l>error</th><th class=l>frames</th>"
+            "<th class=l>then</th></tr>"
             + "".join(
                 f"<tr><td class=l>{escape(s.step_key)}</td><td class=l>{escape(s.error or '')}</td>"
-                f"<td class=l>{len(s.frames or [])} saved</td></tr>"
-                for s in failed
+                f"<td class=l>{len(s.frames or [])} saved</td><td class=l>{then}</td></tr>"
+                for s, then in failed
             )
             + "</table>"
         )
@@ -104,6 +109,9 @@ def export_csv(samples: Sequence[Sample]) -> str:
     return out.getvalue()
 
 
-def export_json(run: dict[str, Any], samples: Sequence[Sample], events: Sequence[dict[str, Any]]) -> str:
-    """The run row, its samples and its events as one JSON document."""
-    return json.dumps({"run": run, "samples": [asdict(s) for s in samples], "events": events}, indent=1, default=str)
+def export_json(run: dict[str, Any], samples: Sequence[Sample], events: Sequence[dict[str, Any]],
+                superseded: Sequence[Sample] = ()) -> str:
+    """The run row, its samples, the failed samples measured again later, and its events as one JSON document."""
+    return json.dumps({"run": run, "samples": [asdict(s) for s in samples],
+                       "superseded_samples": [asdict(s) for s in superseded], "events": events},
+                      indent=1, default=str)

@@ -21,6 +21,7 @@ from instrument.compensation import CalibrationData, CalibrationRecord, Provenan
 from instrument.iso9283 import pose_accuracy, pose_repeatability
 from instrument.pose import Geometry, Pose, PoseError, fit_rigid_transform, predict_measurements, solve_pose
 from instrument.vision import CrossMeasurement, CrossNotFound, locate_cross
+from procedures._files import read_text_file
 from procedures._models import StationFile
 
 COMPONENTS = ("x", "y", "z", "a", "b", "c")  # order of a (6,) pose in M; a, b, c = alpha, theta, gamma
@@ -207,7 +208,7 @@ class InstrumentScience:
                                  curves=curves, summary=summary)
 
     def load_compensator(self, path: str | Path) -> Compensator:
-        text = Path(path).read_text(encoding="utf-8")
+        text = read_text_file(path, what="calibration record")
         return RecordCompensator(CalibrationRecord.from_json(text))
 
 

@@ -1,8 +1,9 @@
 """The ``StepContext`` a procedure kind measures through, on a real (or fake) station.
 
 Motion runs at the procedure's speed and within its timeouts; waits end early on an abort; a pose
-is measured from ``frames_per_pose`` frame triples, retried when frames fail, corrected with the
-calibration records in force, and failed frames are kept as the procedure asks.
+is measured from ``frames_per_pose`` frame triples, retried when frames fail (with a back-off:
+``retry_wait``), corrected with the calibration records in force, and failed frames are kept as the
+procedure asks.
 """
 
 from __future__ import annotations
@@ -18,9 +19,10 @@ from drivers.camera import Frame, GrabFailed
 from drivers.interferometer import Interferometer
 from drivers.robot import MotionEnvelope, Robot
 from drivers.rotary_table import RotaryTable
+from procedures._live_frames import write_live_frames
 from procedures._science import COMPONENTS, Compensator, MeasurementFailed, PoseMeasurement, Science
 from procedures._station import StationRuntime
-from procedures.kinds import MotionParameters, PoseReading, Step
+from procedures.kinds import MotionParameters, PoseReading, Step, retry_wait
 
 SCREENS = ("x", "y", "z")
 
@@ -52,6 +54,13 @@ class StationStepContext:
         self._station, self._params, self._science = station, params, science
         self._compensators = list(compensators)
         self._wait, self._check_abort, self._log, self._run_dir = wait, check_abort, log, run_dir
+        self.session: dict[str, Any] = {}
+
+    def wait(self, seconds: float) -> None:
+        self._wait(seconds)
+
+    def log(self, kind: str, message: str) -> None:
+        self._log(kind, message)
 
     @property
     def robot(self) -> Robot:
@@ -82,6 +91,8 @@ class StationStepContext:
         p = self._params
         last_error, frames_saved = "", []
         for attempt in range(p.retries_per_pose + 1):
+            if attempt > 0:
+                self._wait(retry_wait(p, attempt - 1))
             self._check_abort()
             triples: list[dict[str, Frame]] = []
             try:
@@ -93,7 +104,11 @@ class StationStepContext:
                 self._log("measure_failed", f"{step.key}: {last_error}")
                 if p.save_frames != "never":
                     frames_saved += self._save_frames(step, triples, f"failed{attempt}")
+                if triples:  # the live view shows what the cameras saw, even when no cross was found
+                    write_live_frames(self._run_dir, step.index, step.key, {s: f.image for s, f in triples[-1].items()})
                 continue
+            write_live_frames(self._run_dir, step.index, step.key, {s: f.image for s, f in triples[-1].items()},
+                              measurements[-1].crosses)
             if p.save_frames == "always":
                 frames_saved += self._save_frames(step, triples, "ok")
             stamps = [f.timestamp for t in triples for f in t.values()]

@@ -5,7 +5,14 @@ calibration record in force) and how it ended (state, exit status, reason). A sa
 measured pose with everything needed to recompute it. Every sample is committed (and therefore on
 disk, WAL + ``synchronous=FULL``) before the engine sends the next motion, so a killed process
 loses nothing it reported; ``(run_id, step_index)`` is the primary key, so a resumed run can never
-write a step twice.
+write a step twice. A failed sample is the one exception: a later session measures its step again,
+and the failed row moves to ``superseded_samples`` in the same transaction (kept, never lost).
+
+Exclusivity: a process that runs a run holds its **lease** (a row in ``leases`` with the pid, the
+host and a random token, taken in one ``BEGIN IMMEDIATE`` transaction). A second process is refused
+while the holder lives; a lease whose process is gone is taken over. Every state change is a
+compare-and-set on the state the engine last saw *and* on its lease token, so a process that lost
+its lease can never flip a run's state.
 """
 
 from __future__ import annotations
@@ -16,13 +23,14 @@ import socket
 import sqlite3
 import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from procedures._errors import RunLocked, StateConflict
 from procedures._run_state import RunState
 
 SCHEMA = """
@@ -76,7 +84,74 @@ CREATE TABLE IF NOT EXISTS events (
     message TEXT,
     data TEXT
 );
+CREATE TABLE IF NOT EXISTS superseded_samples (
+    run_id TEXT NOT NULL,
+    step_index INTEGER NOT NULL,
+    step_key TEXT NOT NULL,
+    phase TEXT NOT NULL,
+    label TEXT,
+    ok INTEGER NOT NULL,
+    error TEXT,
+    commanded TEXT,
+    solved TEXT,
+    corrected TEXT,
+    crosses TEXT,
+    reference TEXT,
+    meta TEXT,
+    frames TEXT,
+    t_start REAL,
+    t_measured REAL,
+    t_committed REAL,
+    superseded REAL NOT NULL
+);
+CREATE TABLE IF NOT EXISTS leases (
+    run_id TEXT PRIMARY KEY,
+    token TEXT NOT NULL,
+    host TEXT NOT NULL,
+    pid INTEGER NOT NULL,
+    process_start TEXT,
+    acquired REAL NOT NULL,
+    renewed REAL NOT NULL
+);
 """
+
+_SAMPLE_COLUMNS = ("run_id, step_index, step_key, phase, label, ok, error, commanded, solved, corrected, crosses, "
+                   "reference, meta, frames, t_start, t_measured, t_committed")
+
+FOREIGN_LEASE_TTL_S = 600.0
+"""A lease held from another host counts as stale when not renewed for this long (the engine renews
+it at every step; a lease of this host is judged by whether its process still lives)."""
+
+
+def _process_start(pid: int) -> str | None:
+    """The kernel's start time of process ``pid`` (Linux ``/proc``), to tell a reused pid; None if unknown."""
+    try:
+        with open(f"/proc/{pid}/stat", encoding="ascii", errors="replace") as handle:
+            fields = handle.read().rsplit(")", 1)[1].split()
+        return fields[19]  # field 22 of stat(5), counted after the command name
+    except (OSError, IndexError):
+        return None
+
+
+def _alive(pid: int, process_start: str | None) -> bool:
+    """Whether the process that took a lease on this host still runs."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        pass  # it exists, owned by someone else
+    now_start = _process_start(pid)
+    return process_start is None or now_start is None or now_start == process_start
+
+
+@dataclass(frozen=True)
+class Lease:
+    """This process's right to run one run (see the module docstring)."""
+
+    run_id: str
+    token: str
+    taken_over: dict[str, Any] | None = None  # the stale holder it replaced, if any
 
 _JSON_RUN = ("parameters", "station", "results")
 _JSON_SAMPLE = ("commanded", "solved", "corrected", "crosses", "reference", "meta", "frames")
@@ -178,8 +253,16 @@ class RunStore:
         self.log(run_id, "created", f"{procedure} queued")
         return run_id
 
-    def set_state(self, run_id: str, state: RunState, *, reason: str | None = None) -> None:
-        """Record a state change (and its exit status and reason) in the run row and its events."""
+    def set_state(self, run_id: str, state: RunState, *, reason: str | None = None,
+                  expected: RunState | Iterable[RunState] | None = None, lease: Lease | None = None) -> None:
+        """Record a state change (and its exit status and reason) in the run row and its events.
+
+        Parameters
+        ----------
+        expected : the state(s) the caller believes the run is in; the change happens only if it
+            still is (compare-and-set), else ``StateConflict``
+        lease : the caller's lease; the change happens only while the caller still holds it
+        """
         state = RunState(state)  # a plain string from a caller is checked here
         now = time.time()
         sets = ["state = ?", "reason = ?", "exit_status = ?"]
@@ -190,8 +273,78 @@ class RunStore:
         if state.ended:
             sets.append("finished = ?")
             values.append(now)
-        self._db.execute(f"UPDATE runs SET {', '.join(sets)} WHERE id = ?", (*values, run_id))
+        where, args = ["id = ?"], [run_id]
+        if expected is not None:
+            allowed = [RunState(expected)] if isinstance(expected, str) else [RunState(e) for e in expected]
+            where.append(f"state IN ({', '.join('?' * len(allowed))})")
+            args += [e.value for e in allowed]
+        if lease is not None:
+            where.append("EXISTS (SELECT 1 FROM leases WHERE leases.run_id = runs.id AND leases.token = ?)")
+            args.append(lease.token)
+        changed = self._db.execute(f"UPDATE runs SET {', '.join(sets)} WHERE {' AND '.join(where)}",
+                                   (*values, *args)).rowcount
+        if changed != 1:
+            now_state = self._db.execute("SELECT state FROM runs WHERE id = ?", (run_id,)).fetchone()
+            holder = "" if lease is None or self._holds(lease) else "; this process no longer holds the run's lease"
+            raise StateConflict(f"run {run_id}: cannot set {state.value}: it is "
+                                f"{now_state[0] if now_state else 'gone'}{holder} (changed by another process?)")
         self.log(run_id, "state", state.value + (f": {reason}" if reason else ""))
+
+    # ---------------------------------------------------------------------------------- leases
+    def acquire_lease(self, run_id: str) -> Lease:
+        """Take the run's lease for this process, atomically; a stale lease (its process gone) is taken over.
+
+        Raises
+        ------
+        RunLocked
+            Another live process holds it (the message names its pid, host and since when).
+        """
+        host, pid, token = socket.gethostname(), os.getpid(), uuid.uuid4().hex
+        now = time.time()
+        self._db.execute("BEGIN IMMEDIATE")  # one writer from here to COMMIT: check and take are atomic
+        try:
+            row = self._db.execute("SELECT * FROM leases WHERE run_id = ?", (run_id,)).fetchone()
+            previous = dict(row) if row is not None else None
+            if previous is not None and self._lease_alive(previous):
+                since = time.strftime("%H:%M:%S", time.localtime(previous["acquired"]))
+                raise RunLocked(f"run {run_id} is already being run by pid {previous['pid']} on "
+                                f"{previous['host']} (since {since}); wait for it to end or stop that process")
+            self._db.execute(
+                "INSERT OR REPLACE INTO leases (run_id, token, host, pid, process_start, acquired, renewed) "
+                "VALUES (?,?,?,?,?,?,?)", (run_id, token, host, pid, _process_start(pid), now, now))
+            self._db.execute("COMMIT")
+        except BaseException:
+            self._db.execute("ROLLBACK")
+            raise
+        if previous is not None:
+            stale = {key: previous[key] for key in ("pid", "host", "acquired")}
+            self.log(run_id, "lease_taken_over",
+                     f"stale lease of pid {previous['pid']} on {previous['host']} taken over", stale)
+        return Lease(run_id, token, previous)
+
+    def renew_lease(self, lease: Lease) -> None:
+        """Mark the lease as alive now (matters only for a store shared between hosts)."""
+        self._db.execute("UPDATE leases SET renewed = ? WHERE run_id = ? AND token = ?",
+                         (time.time(), lease.run_id, lease.token))
+
+    def release_lease(self, lease: Lease) -> None:
+        """Give the lease back (only if still ours)."""
+        self._db.execute("DELETE FROM leases WHERE run_id = ? AND token = ?", (lease.run_id, lease.token))
+
+    def lease_holder(self, run_id: str) -> dict[str, Any] | None:
+        """The live process holding the run's lease (pid, host, acquired ...), or None."""
+        row = self._db.execute("SELECT * FROM leases WHERE run_id = ?", (run_id,)).fetchone()
+        return dict(row) if row is not None and self._lease_alive(dict(row)) else None
+
+    def _holds(self, lease: Lease) -> bool:
+        return self._db.execute("SELECT 1 FROM leases WHERE run_id = ? AND token = ?",
+                                (lease.run_id, lease.token)).fetchone() is not None
+
+    @staticmethod
+    def _lease_alive(row: dict[str, Any]) -> bool:
+        if row["host"] == socket.gethostname():
+            return _alive(int(row["pid"]), row["process_start"])
+        return time.time() - float(row["renewed"]) < FOREIGN_LEASE_TTL_S
 
     def set_results(self, run_id: str, results: dict) -> None:
         self._db.execute("UPDATE runs SET results = ? WHERE id = ?", (_dumps(results), run_id))
@@ -205,8 +358,16 @@ class RunStore:
                              (_dumps(value) if key == "station" else value, run_id))
 
     def get_run(self, run_id: str) -> dict[str, Any]:
-        """The run row as a dict (JSON fields decoded, ``state`` a ``RunState``). ``run_id`` may be a unique prefix."""
-        rows = self._db.execute("SELECT * FROM runs WHERE id LIKE ? ORDER BY created", (run_id + "%",)).fetchall()
+        """The run row as a dict (JSON fields decoded, ``state`` a ``RunState``).
+
+        ``run_id`` is the id, or a unique prefix of it (compared as plain text: no wildcards).
+        """
+        if not run_id:
+            raise KeyError("no run id given")
+        rows = self._db.execute("SELECT * FROM runs WHERE id = ?", (run_id,)).fetchall()
+        if not rows:
+            rows = self._db.execute("SELECT * FROM runs WHERE substr(id, 1, ?) = ? ORDER BY created",
+                                    (len(run_id), run_id)).fetchall()
         if not rows:
             raise KeyError(f"no run {run_id!r} in {self.path}")
         if len(rows) > 1:
@@ -248,20 +409,42 @@ class RunStore:
         t_start: float | None = None,
         t_measured: float | None = None,
     ) -> None:
-        """Insert and commit one sample. Raises ``sqlite3.IntegrityError`` if the step is
-        already stored (a resumed run must never measure a committed step again)."""
-        self._db.execute(
-            "INSERT INTO samples (run_id, step_index, step_key, phase, label, ok, error, commanded, solved, "
-            "corrected, crosses, reference, meta, frames, t_start, t_measured, t_committed) "
-            "VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
-            (run_id, step_index, step_key, phase, label, int(ok), error, _dumps(commanded), _dumps(solved),
-             _dumps(corrected), _dumps(crosses), _dumps(reference), _dumps(meta), _dumps(frames), t_start,
-             t_measured, time.time()),
-        )
+        """Insert and commit one sample.
+
+        A step stored as *failed* is measured again by a later session: its failed row moves to
+        ``superseded_samples`` in the same transaction. Raises ``sqlite3.IntegrityError`` if the
+        step is already stored as measured (a resumed run must never measure such a step again).
+        """
+        values = (run_id, step_index, step_key, phase, label, int(ok), error, _dumps(commanded), _dumps(solved),
+                  _dumps(corrected), _dumps(crosses), _dumps(reference), _dumps(meta), _dumps(frames), t_start,
+                  t_measured, time.time())
+        self._db.execute("BEGIN IMMEDIATE")
+        try:
+            self._db.execute(
+                f"INSERT INTO superseded_samples ({_SAMPLE_COLUMNS}, superseded) SELECT {_SAMPLE_COLUMNS}, ? "
+                "FROM samples WHERE run_id = ? AND step_index = ? AND ok = 0", (time.time(), run_id, step_index))
+            self._db.execute("DELETE FROM samples WHERE run_id = ? AND step_index = ? AND ok = 0", (run_id, step_index))
+            self._db.execute(f"INSERT INTO samples ({_SAMPLE_COLUMNS}) VALUES ({', '.join('?' * 17)})", values)
+            self._db.execute("COMMIT")
+        except BaseException:
+            self._db.execute("ROLLBACK")
+            raise
 
     def committed_steps(self, run_id: str) -> set[int]:
+        """Steps with a stored sample, measured or failed."""
         rows = self._db.execute("SELECT step_index FROM samples WHERE run_id = ?", (run_id,)).fetchall()
         return {row[0] for row in rows}
+
+    def measured_steps(self, run_id: str) -> set[int]:
+        """Steps stored as measured (``ok``): the ones a resumed run skips; failed ones are measured again."""
+        rows = self._db.execute("SELECT step_index FROM samples WHERE run_id = ? AND ok = 1", (run_id,)).fetchall()
+        return {row[0] for row in rows}
+
+    def superseded_samples(self, run_id: str) -> list[Sample]:
+        """Failed samples that a later session measured again, oldest first."""
+        rows = self._db.execute(f"SELECT {_SAMPLE_COLUMNS} FROM superseded_samples WHERE run_id = ? "
+                                "ORDER BY superseded, step_index", (run_id,))
+        return list(self._decode(rows))
 
     def samples(self, run_id: str) -> list[Sample]:
         rows = self._db.execute("SELECT * FROM samples WHERE run_id = ? ORDER BY step_index", (run_id,))

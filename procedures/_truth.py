@@ -16,17 +16,19 @@ class TruthLog:
         self.times = [e["time"] for e in self.entries]
 
     @classmethod
-    def read(cls, path: str | Path) -> TruthLog:
+    def read(cls, *paths: str | Path) -> TruthLog:
+        """The logs at ``paths`` merged by time (a resumed run may have been measured on several cells)."""
         entries = []
-        with open(path, encoding="utf-8") as handle:
-            for line in handle:
-                line = line.strip()
-                if not line:
-                    continue
-                try:
-                    entries.append(json.loads(line))
-                except json.JSONDecodeError:
-                    continue  # a line cut short by a crash
+        for path in paths:
+            with open(path, encoding="utf-8", errors="replace") as handle:
+                for line in handle:
+                    line = line.strip()
+                    if not line:
+                        continue
+                    try:
+                        entries.append(json.loads(line))
+                    except json.JSONDecodeError:
+                        continue  # a line cut short by a crash
         return cls(entries)
 
     def at(self, when: float) -> dict[str, Any] | None:

@@ -1,4 +1,10 @@
-"""Load YAML while remembering the line of every field, so errors can name ``file:line``."""
+"""Load YAML while remembering the line of every field, so errors can name ``file:line``.
+
+Input is not trusted: the file is read as a bounded, regular UTF-8 file (``procedures._files``),
+and the parsed node graph is checked before anything is built from it: no recursive alias, at
+most ``MAX_NODES`` nodes once aliases are expanded (a "billion laughs" file is refused, not
+expanded), at most ``MAX_DEPTH`` levels of nesting.
+"""
 
 from __future__ import annotations
 
@@ -8,8 +14,11 @@ from typing import Any
 import yaml
 
 from procedures._errors import ConfigError
+from procedures._files import InputRefused, read_text_file
 
 Path_ = tuple[Any, ...]
+MAX_NODES = 100_000
+MAX_DEPTH = 32
 
 
 class MarkedYaml:
@@ -52,12 +61,21 @@ def load_marked(path: str | Path, text: str | None = None) -> MarkedYaml:
     source = str(path)
     if text is None:
         try:
-            text = Path(path).read_text(encoding="utf-8")
-        except OSError as exc:
-            raise ConfigError([f"{source}: cannot read file: {exc.strerror or exc}"]) from None
+            text = read_text_file(path, what="YAML file")
+        except InputRefused as exc:
+            raise ConfigError([str(exc)]) from None
     try:
         node = yaml.compose(text, Loader=yaml.SafeLoader)
-        data = yaml.safe_load(text)
+        if node is not None:
+            _check_size(node, source)
+        data = _construct(node)
+    except ConfigError:
+        raise
+    except RecursionError:
+        raise ConfigError([f"{source}:1: YAML: nested too deeply (at most {MAX_DEPTH} levels)"]) from None
+    except ValueError as exc:  # a scalar the constructor cannot convert (an integer of 5000 digits ...)
+        what = "an integer with too many digits" if "digits" in str(exc) else _first_line(exc)
+        raise ConfigError([f"{source}:1: YAML: {what}"]) from None
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark or exc.context_mark
         line = mark.line + 1 if mark else 1
@@ -73,6 +91,58 @@ def load_marked(path: str | Path, text: str | None = None) -> MarkedYaml:
     if node is not None:
         _walk(node, (), lines, key_lines)
     return MarkedYaml(data, lines, key_lines, source)
+
+
+def _construct(node: yaml.Node | None) -> Any:
+    """The Python value of a checked node graph (what ``yaml.safe_load`` would give)."""
+    if node is None:
+        return None
+    loader = yaml.SafeLoader("")
+    try:
+        return loader.construct_document(node)
+    finally:
+        loader.dispose()
+
+
+def _check_size(root: yaml.Node, source: str) -> None:
+    """Refuse a recursive alias, more than ``MAX_NODES`` nodes once aliases are expanded, or more
+    than ``MAX_DEPTH`` levels. Iterative, and each distinct node is visited once (aliases share
+    nodes), so the check costs what the file costs, not what it would expand to."""
+    size: dict[int, int] = {}
+    depth: dict[int, int] = {}
+    on_path: set[int] = set()
+    stack: list[tuple[yaml.Node, bool]] = [(root, False)]
+    while stack:
+        node, children_done = stack.pop()
+        key = id(node)
+        children = _children(node)
+        if children_done:
+            on_path.discard(key)
+            size[key] = 1 + sum(size[id(child)] for child in children)
+            depth[key] = 1 + max((depth[id(child)] for child in children), default=0)
+            if size[key] > MAX_NODES:
+                raise ConfigError([f"{source}:{node.start_mark.line + 1}: YAML: more than {MAX_NODES} values once "
+                                   "aliases are expanded (an alias bomb?)"])
+            if depth[key] > MAX_DEPTH:
+                raise ConfigError([f"{source}:{node.start_mark.line + 1}: YAML: nested more than {MAX_DEPTH} "
+                                   "levels deep"])
+            continue
+        if key in size:
+            continue
+        if key in on_path:
+            raise ConfigError([f"{source}:{node.start_mark.line + 1}: YAML: an alias refers to a value that "
+                               "contains it (recursive alias)"])
+        on_path.add(key)
+        stack.append((node, True))
+        stack.extend((child, False) for child in children if id(child) not in size)
+
+
+def _children(node: yaml.Node) -> list[yaml.Node]:
+    if isinstance(node, yaml.MappingNode):
+        return [part for pair in node.value for part in pair]
+    if isinstance(node, yaml.SequenceNode):
+        return list(node.value)
+    return []
 
 
 def _first_line(exc: Exception) -> str:

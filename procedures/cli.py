@@ -2,12 +2,25 @@
 
 Each subcommand lives in its own module ``procedures/_cmd_<name>.py`` exposing
 ``register(subparsers)``; this file only assembles them.
+
+No command prints a traceback: a problem with the input or the run is one line on stderr (exit
+status 1); an unforeseen error is one line naming the file that holds its traceback
+(``<runs folder>/instrument-errors.log``; inside a run, the run's own log has it too). What the
+client libraries log (python-can logs a lost connection with its traceback) goes to that file
+too, not to the terminal. A reader that goes away (``instrument runs --json | head``) ends the
+output quietly.
 """
 
 from __future__ import annotations
 
 import argparse
+import datetime
+import logging
+import os
 import sys
+import tempfile
+import traceback
+from pathlib import Path
 
 from instrument import __version__
 from procedures import (
@@ -22,9 +35,12 @@ from procedures import (
     _cmd_sim,
     _cmd_validate,
 )
+from procedures._errors import ConfigError, RunError
+from procedures._files import InputRefused
 
 COMMANDS = (_cmd_locate, _cmd_sim, _cmd_validate, _cmd_run, _cmd_resume, _cmd_runs, _cmd_show, _cmd_report,
             _cmd_export, _cmd_serve)
+ERROR_LOG = "instrument-errors.log"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -39,17 +55,87 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _error_log(args: argparse.Namespace | None) -> Path:
+    """The error log: in the runs folder if there is one, else in the temporary folder."""
+    runs_dir = Path(getattr(args, "runs_dir", None) or os.environ.get("INSTRUMENT_RUNS", "runs"))
+    folder = runs_dir if runs_dir.is_dir() and os.access(runs_dir, os.W_OK) else Path(tempfile.gettempdir())
+    return folder / ERROR_LOG
+
+
+def _log_traceback(args: argparse.Namespace | None) -> str:
+    """Append the current exception's traceback to the error log; returns where it went."""
+    path = _error_log(args)
+    text = f"--- {datetime.datetime.now().isoformat(timespec='seconds')} instrument {' '.join(sys.argv[1:])}\n" \
+           f"{traceback.format_exc()}\n"
+    try:
+        with open(path, "a", encoding="utf-8") as handle:
+            handle.write(text)
+    except OSError:
+        return "nowhere (the error log could not be written)"
+    return str(path)
+
+
+class _LibraryLog(logging.Handler):
+    """Client libraries' warnings and errors, appended to the error log (opened per record: the
+    runs folder may appear only once the command has started)."""
+
+    def __init__(self, args: argparse.Namespace) -> None:
+        super().__init__(logging.WARNING)
+        self.args = args
+        self.setFormatter(logging.Formatter("%(asctime)s %(name)s %(levelname)s: %(message)s"))
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            with open(_error_log(self.args), "a", encoding="utf-8") as handle:
+                handle.write(self.format(record) + "\n")
+        except Exception:
+            pass  # logging must never stop a measurement
+
+
+def _quiet_stdout() -> None:
+    """The reader of our stdout left: point stdout at /dev/null so that the interpreter's final
+    flush does not complain either."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError):
+        pass
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "handler", None):
         parser.print_help()
         return 2
+    library_log = _LibraryLog(args)
+    logging.getLogger().addHandler(library_log)  # instead of Python's last-resort print to stderr
+    try:
+        return _run(args)
+    finally:
+        logging.getLogger().removeHandler(library_log)
+
+
+def _run(args: argparse.Namespace) -> int:
     try:
         return int(args.handler(args) or 0)
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:
+        _quiet_stdout()
+        return 0
+    except (ConfigError, RunError, InputRefused) as exc:
+        print(str(exc), file=sys.stderr)
+        return 1
+    except MemoryError:
+        print("instrument: out of memory", file=sys.stderr)
+        return 1
+    except Exception as exc:  # a bug: one line for the user, the traceback in the log
+        where = _log_traceback(args)
+        first = (str(exc).splitlines() or [""])[0][:300]
+        print(f"instrument: internal error: {type(exc).__name__}: {first} (traceback in {where})", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

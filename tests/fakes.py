@@ -21,7 +21,8 @@ import numpy as np
 import yaml
 
 from drivers.camera import Frame, GrabFailed
-from drivers.robot import MotionEnvelope, ProtectiveStop, RobotState
+from drivers.interferometer import DatumLost
+from drivers.robot import MotionEnvelope, ProtectiveStop, RobotIdentity, RobotState
 from drivers.rotary_table import TableState
 from procedures._geometry import euler_to_matrix, matrix_to_euler, tcp_in_m, ur_to_matrix
 from procedures._science import CalibrationResult, MeasurementFailed, PoseMeasurement
@@ -91,6 +92,8 @@ class FakeCell:
         self.moves = 0
         self.fail_grabs = 0
         self.fail_measures = 0
+        self.lose_datum_on_reads: set[int] = set()  # interferometer.average calls (1-based) that lose the datum
+        self.reads = 0
         self.log: list[str] = []
         self.robot = FakeRobot(self)
         self.cameras = {s: FakeCamera(self, s) for s in "xyz"}
@@ -125,6 +128,18 @@ class FakeRobot:
         self.connected = False
         self.envelope = MotionEnvelope.from_dict(station_dict()["envelope"])
         self.tcp = np.zeros(6)
+        self.payload = (0.0, np.zeros(3))
+
+    def identity(self) -> RobotIdentity:
+        return RobotIdentity(manufacturer="Universal Robots", model="UR5", serial_number="20235500123",
+                             controller_version="5.15.0.0")
+
+    def set_payload(self, mass_kg: float, cog_m) -> None:
+        cog = np.asarray(cog_m, dtype=float)
+        if not (np.isfinite(mass_kg) and mass_kg >= 0) or cog.shape != (3,) or not np.all(np.isfinite(cog)):
+            raise ValueError(f"robot: payload must be a finite mass >= 0 kg and 3 finite numbers (m), "
+                             f"got {mass_kg!r}, {cog_m!r}")
+        self.payload = (float(mass_kg), cog.copy())
 
     def set_tcp(self, offset) -> None:
         self.tcp = np.asarray(offset, dtype=float).copy()
@@ -134,7 +149,6 @@ class FakeRobot:
 
     def open(self) -> None:
         self.connected = True
-
 
     def close(self) -> None:
         self.connected = False
@@ -254,8 +268,17 @@ class FakeInterferometer:
 
     def zero(self) -> None:
         self.datum = self._axis_value()
+        self.has_datum = True
+
+    has_datum = False  # a fresh head has none, like the real one
 
     def average(self, duration: float, timeout: float | None = None) -> float:
+        self.cell.reads += 1
+        if self.cell.reads in self.cell.lose_datum_on_reads:
+            self.has_datum, self.datum = False, float("nan")  # a beam break loses the count
+            raise DatumLost(self.name, "average", "beam not OK at sample 12 (fake beam break)")
+        if not self.has_datum:
+            raise DatumLost(self.name, "average", "no datum set since power-on or the last beam break")
         return self._axis_value() - self.datum + self.cell.rng.normal(0, 0.1e-6)
 
 
@@ -394,3 +417,7 @@ def failing_hook(event: dict) -> None:
 
 def slow_hook(event: dict) -> None:
     time.sleep(3.0)
+
+
+def hanging_hook(event: dict) -> None:
+    time.sleep(30.0)  # abandoned at its deadline; a daemon thread, gone with the process

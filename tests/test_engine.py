@@ -1,6 +1,8 @@
 """The engine on the fake cell: the three procedures, dry run, pause/resume, protective stop, abort."""
 
+import json
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -8,6 +10,7 @@ import pytest
 from procedures._api import open_engine
 from procedures._errors import RunError
 from procedures._geometry import tcp_in_m
+from procedures._report import export_json, render_report
 from tests.fakes import REFERENCE_TCP, FakeCell, FakeScience, write_station
 
 
@@ -75,7 +78,7 @@ def test_calibration_runs_write_records(setup):
 
 def test_displacement_reference_is_interferometer_relative_to_group_start(setup):
     tmp_path, station, cell = setup
-    proc = _procedure(tmp_path, "displacement_calibration", axes="[y]", repeats=1)
+    proc = _procedure(tmp_path, "displacement_calibration", axes="[y]", repeats=2)
     with _engine(tmp_path, station, cell, proc) as engine:
         engine.execute()
         samples = engine.store.samples(engine.run_id)
@@ -201,7 +204,7 @@ def test_keyboard_interrupt_during_a_move_aborts(setup):
 def test_failed_measurements_are_recorded_with_their_frames(setup):
     tmp_path, station, cell = setup
     cell.fail_measures = 3  # the first pose fails on every attempt (retries_per_pose = 2)
-    proc = _procedure(tmp_path, "iso9283_repeatability", cycles=2)
+    proc = _procedure(tmp_path, "iso9283_repeatability", cycles=2, retry_backoff_s=0)
     with _engine(tmp_path, station, cell, proc) as engine:
         assert engine.execute() == "FINISHED"
         samples = engine.store.samples(engine.run_id)
@@ -234,7 +237,7 @@ def test_interferometer_is_aligned_where_each_line_starts(setup):
         align(axis)
 
     cell.operator.align_interferometer = recording_align
-    proc = _procedure(tmp_path, "displacement_calibration", axes="[y, z]", repeats=1, start_mm=10)
+    proc = _procedure(tmp_path, "displacement_calibration", axes="[y, z]", repeats=2, start_mm=10)
     with _engine(tmp_path, station, cell, proc) as engine:
         assert engine.execute() == "FINISHED"
     for axis, position in aligned_at.items():
@@ -242,3 +245,199 @@ def test_interferometer_is_aligned_where_each_line_starts(setup):
         expected["xyz".index(axis)] = 0.010  # group 0 starts at M's origin, its line at start_mm
         np.testing.assert_allclose(position, expected, atol=1e-12)
     assert list(aligned_at) == ["y", "z"]
+
+
+# ------------------------------------------------------------------ issue 12: resume always finishes
+def test_failed_poses_are_measured_again_on_resume_and_kept_as_superseded(setup):
+    tmp_path, station, cell = setup
+    cell.fail_measures = 3  # the first pose fails on all three attempts
+    proc = _procedure(tmp_path, "iso9283_repeatability", cycles=2, max_failed_samples=0, retry_backoff_s=0)
+    with _engine(tmp_path, station, cell, proc) as engine:
+        assert engine.execute() == "FAILED"
+        run = engine.store.get_run(engine.run_id)
+    assert "1 poses could not be measured in this session" in run["reason"]
+    assert "transform/c000/P1: attempt 3: screen y: no cross found (fake)" in run["reason"]
+    with _engine(tmp_path, None, cell, run_id=run["id"]) as engine:
+        assert engine.execute() == "FINISHED"
+        samples = engine.store.samples(run["id"])
+        superseded = engine.store.superseded_samples(run["id"])
+        events = engine.store.events(run["id"])
+        finished = engine.store.get_run(run["id"])
+    assert [s.step_index for s in samples] == list(range(15)) and all(s.ok for s in samples)
+    exported = json.loads(export_json(finished, samples, events, superseded))
+    assert [s["step_key"] for s in exported["superseded_samples"]] == ["transform/c000/P1"]
+    assert "measured again later" in render_report(finished, samples, events, superseded)
+    assert [(s.step_index, s.ok) for s in superseded] == [(0, False)]  # the failure is kept, not lost
+    assert "no cross found" in superseded[0].error
+    assert any(e["kind"] == "remeasured" and e["message"].startswith("transform/c000/P1") for e in events)
+    assert "1 failed poses to measure again" in [e for e in events if e["kind"] == "state"][-2]["message"]
+
+
+def test_max_failed_samples_counts_the_failures_of_one_session(setup):
+    tmp_path, station, cell = setup
+    cell.fail_measures = 2  # poses 0 and 1 fail (one attempt each)
+    proc = _procedure(tmp_path, "iso9283_repeatability", cycles=2, max_failed_samples=1, retries_per_pose=0)
+    with _engine(tmp_path, station, cell, proc) as engine:
+        assert engine.execute() == "FAILED"  # the second failure of this session is one too many
+        run_id = engine.run_id
+    cell.fail_measures = 1  # on resume, pose 0 fails again: the only failure of this session, tolerated
+    with _engine(tmp_path, None, cell, run_id=run_id) as engine:
+        assert engine.execute() == "FINISHED"
+        samples = engine.store.samples(run_id)
+        superseded = engine.store.superseded_samples(run_id)
+    assert [s.step_index for s in samples] == list(range(15))
+    assert [s.step_index for s in samples if not s.ok] == [0]
+    assert sorted(s.step_index for s in superseded) == [0, 1]
+
+
+def test_retries_back_off(setup):
+    tmp_path, station, cell = setup
+    cell.fail_grabs = 2  # the first two attempts of the first pose fail
+    proc = _procedure(tmp_path, "iso9283_repeatability", cycles=2, retry_backoff_s=0.3)
+    with _engine(tmp_path, station, cell, proc) as engine:
+        assert engine.execute() == "FINISHED"
+        first = engine.store.samples(engine.run_id)[0]
+    assert first.ok and first.solved["attempts"] == 3
+    assert first.t_committed - first.t_start >= 0.3 + 0.6  # waited 0.3 s, then 0.6 s, before the retries
+
+
+def _datum_rows(results):
+    (rows,) = results["data"].values()
+    return rows
+
+
+def test_a_resumed_displacement_group_reestablishes_its_datum(setup):
+    tmp_path, station, cell = setup
+    proc = _procedure(tmp_path, "displacement_calibration", axes="[y]", repeats=2, groups=1,
+                      group_start_offsets_mm="[[0, 0, 0]]")
+
+    def listener(event):
+        if event["event"] == "progress" and event["done"] == 20:  # in the group's second repeat
+            engine.request_pause("end of shift")
+
+    with _engine(tmp_path, station, cell, proc, listener=listener, pause_timeout_s=0) as engine:
+        assert engine.execute() == "PAUSED"
+        run_id = engine.run_id
+    # The next morning: a new process, and the interferometer has lost its count (re-aimed, power-cycled).
+    fresh = FakeCell(seed=8, truth_log=tmp_path / "truth.jsonl")
+    with _engine(tmp_path, None, fresh, run_id=run_id) as engine:
+        assert engine.execute() == "FINISHED"
+        samples = engine.store.samples(run_id)
+        events = engine.store.events(run_id)
+        results = engine.store.get_run(run_id)["results"]
+    datums = [e["message"] for e in events if e["kind"] == "datum"]
+    assert len(datums) == 1 and "no datum in this session" in datums[0] and "disp/y/g0/r1/p05" in datums[0]
+    assert [s.reference["datum_reestablished"] for s in samples] == [False] * 20 + [True] * 10
+    assert len({s.reference["datum_set_at"] for s in samples}) == 2
+    # The analysis joins the two datums: the offset the robot's repeatability put between them is
+    # estimated from the points measured under both, so the fitted references follow the truth.
+    rows = _datum_rows(results)
+    assert {row["group"] for row in rows} == {0} and {row["datum"] for row in rows} == {0, 1}
+    first = np.mean([r["reference"] - r["true"] for r in rows if r["datum"] == 0])
+    second = np.mean([r["reference"] - r["true"] for r in rows if r["datum"] == 1])
+    raw = np.mean([r["reference_raw"] - r["true"] for r in rows if r["datum"] == 1])
+    assert abs(second - first) < 0.5e-6  # joined to a fraction of a µm (the fake's noise is 0.3 µm)
+    assert abs(raw - first) > 1e-6  # ... while the raw readings of the second datum were off by µm
+
+
+def test_a_datum_lost_mid_group_is_reestablished_and_the_run_goes_on(setup):
+    tmp_path, station, cell = setup
+    cell.lose_datum_on_reads = {7}
+    proc = _procedure(tmp_path, "displacement_calibration", axes="[z]", repeats=2, groups=1,
+                      group_start_offsets_mm="[[0, 0, 0]]", retry_backoff_s=0)
+    with _engine(tmp_path, station, cell, proc) as engine:
+        assert engine.execute() == "FINISHED"
+        samples = engine.store.samples(engine.run_id)
+        events = engine.store.events(engine.run_id)
+    assert [e["kind"] for e in events if e["kind"].startswith("datum")] == ["datum_lost", "datum"]
+    assert [s.reference["datum_reestablished"] for s in samples] == [False] * 6 + [True] * 24
+    for s in samples:  # every reference still follows the commanded position, within the robot's repeatability
+        assert s.reference["value"] == pytest.approx(s.meta["nominal"], abs=40e-6)
+
+
+# --------------------------------------------------------------------------- signals and states
+def _signals(tmp_path, station, cell, proc, presses, pause_handler):
+    """Run with the CLI's signal handling; ``presses[done]`` are the signals raised when ``done``
+    samples are committed (the handlers run in this thread, as in the CLI)."""
+    import signal
+
+    from procedures._cli_common import signals_control
+
+    def listener(event):
+        if event["event"] == "progress":
+            for sig in presses.get(event["done"], ()):
+                signal.raise_signal(sig)
+
+    with _engine(tmp_path, station, cell, proc, listener=listener, pause_handler=pause_handler) as engine:
+        with signals_control(engine):
+            state = engine.execute()
+        return state, engine.store.get_run(engine.run_id), _states(engine.store, engine.run_id)
+
+
+def test_ctrl_c_pauses_again_after_any_number_of_resumes(setup):
+    import signal
+
+    tmp_path, station, cell = setup
+    proc = _procedure(tmp_path, "iso9283_repeatability", cycles=2)
+    presses = {2: [signal.SIGINT], 6: [signal.SIGINT], 9: [signal.SIGINT]}
+    state, run, states = _signals(tmp_path, station, cell, proc, presses, lambda engine: "resume")
+    assert state == "FINISHED"
+    assert states == ["RUNNING"] + ["PAUSED", "RUNNING"] * 3 + ["FINISHED"]
+
+
+def test_two_ctrl_c_after_a_resume_abort_and_stop_the_robot(setup):
+    import signal
+
+    tmp_path, station, cell = setup
+    proc = _procedure(tmp_path, "iso9283_repeatability", cycles=2)
+    presses = {2: [signal.SIGINT], 5: [signal.SIGINT, signal.SIGINT]}
+    state, run, states = _signals(tmp_path, station, cell, proc, presses, lambda engine: "resume")
+    assert state == "ABORTED" and run["reason"].startswith("aborted by a second Ctrl-C")
+    assert states == ["RUNNING", "PAUSED", "RUNNING", "ABORTED"]
+    assert cell.robot.stops >= 1
+
+
+@pytest.mark.parametrize("name", ["SIGTERM", "SIGHUP"])
+def test_sigterm_and_sighup_abort_like_a_second_ctrl_c(setup, name):
+    import signal
+
+    tmp_path, station, cell = setup
+    proc = _procedure(tmp_path, "iso9283_repeatability", cycles=2)
+    state, run, states = _signals(tmp_path, station, cell, proc, {4: [getattr(signal, name)]},
+                                  lambda engine: "resume")
+    assert state == "ABORTED" and run["reason"].startswith(f"aborted by {name}")
+    assert run["exit_status"] == "abort" and states == ["RUNNING", "ABORTED"]
+    assert cell.robot.stops >= 1 and cell.table.stops >= 0
+
+
+def test_a_detached_pause_returns_at_once(setup):
+    from procedures._cli_common import detach_at_once
+
+    tmp_path, station, cell = setup
+    cell.protective_stop_on_moves = {3}
+    proc = _procedure(tmp_path, "iso9283_repeatability", cycles=2)
+    # With --jsonl a protective stop must end the command (exit 3), not wait the hour of pause_timeout_s.
+    with _engine(tmp_path, station, cell, proc, pause_handler=detach_at_once, pause_timeout_s=3600) as engine:
+        assert engine.execute() == "PAUSED"
+        assert "ProtectiveStop" in engine.store.get_run(engine.run_id)["reason"]
+
+
+def test_a_hanging_hook_does_not_hold_up_the_run_and_every_event_is_accounted_for(tmp_path):
+    station = write_station(tmp_path / "station.yaml")
+    proc = tmp_path / "iso.yaml"
+    proc.write_text("procedure: iso9283_repeatability\n"
+                    "parameters: {cycles: 2, settle_time_s: 0, frames_per_pose: 1}\n"
+                    "hooks:\n  - call: tests.fakes:hanging_hook\n    timeout_s: 1\n")
+    cell = FakeCell(seed=4)
+    start = time.monotonic()
+    with _engine(tmp_path, station, cell, proc) as engine:
+        assert engine.execute() == "FINISHED"
+        events = engine.store.events(engine.run_id)
+        samples = engine.store.samples(engine.run_id)
+    elapsed = time.monotonic() - start
+    # In the step loop, 17 events × 1 s would take 17 s; off it, the run waits at most one deadline at its end.
+    assert elapsed < 10, elapsed
+    assert len(samples) == 15
+    failed = [e["message"] for e in events if e["kind"] == "hook_failed"]
+    assert len(failed) == 17  # run_started, 15 × point_measured, run_finished: each delivered or logged
+    assert any("did not return within 1.0 s" in m for m in failed)

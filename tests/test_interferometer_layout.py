@@ -18,8 +18,16 @@ from drivers.interferometer import (
     crc8_j1850,
     create,
 )
+from drivers.interferometer._environment import EnvironmentTracker
 from drivers.interferometer._feed import FeedBuffer
-from drivers.interferometer._layout import decode_displacement, decode_reply, decode_status, encode_command
+from drivers.interferometer._layout import (
+    decode_displacement,
+    decode_environment_air,
+    decode_environment_material,
+    decode_reply,
+    decode_status,
+    encode_command,
+)
 from sim_devices.interferometer import _frames
 
 LAYOUT = FrameLayout()
@@ -74,6 +82,63 @@ def test_corrupt_frames_are_protocol_errors():
         decode_displacement("ifm", 0x181, good[:5])
 
 
+# The worked example of docs/interferometer.md for the environmental unit: cycle 5, air 20.000 °C
+# (20000 = 0x4E20), 101 325 Pa (41325 = 0xA16D above 60 kPa), 50.00 % RH (5000 = 0x1388); one material
+# sensor at 20.500 °C (0x5014), two not fitted (0xFFFF).
+DOC_AIR = bytes.fromhex("204E6DA1881350EA")
+DOC_MATERIAL = bytes.fromhex("1450FFFFFFFF505A")
+
+
+def test_documented_environment_frames_decode():
+    air = decode_environment_air("ifm", 0x381, DOC_AIR)
+    assert (air.air_temperature_k, air.pressure_pa, air.relative_humidity) == (293.15, 101325.0, 0.5)
+    assert (air.faults, air.counter) == ((), 5)
+    material = decode_environment_material("ifm", 0x481, DOC_MATERIAL)
+    assert material.temperatures_k[0] == 293.65 and all(math.isnan(t) for t in material.temperatures_k[1:])
+    assert (material.fitted, material.faults, material.counter) == ((True, False, False), (), 5)
+    # and the twin encodes exactly these bytes
+    assert _frames.environment_frames(0x381, 0x481, 5, 20.0, 101325.0, 50.0, [20.5], set()) == [
+        (0x381, DOC_AIR), (0x481, DOC_MATERIAL)]
+
+
+def test_environment_faults_and_ranges_round_trip():
+    frames = dict(_frames.environment_frames(0x381, 0x481, 21, 19.9996, 101_324.6, 45.678, [20.1, 70.0],
+                                             {"pressure"}))
+    air = decode_environment_air("ifm", 0x381, frames[0x381])
+    assert air.air_temperature_k == pytest.approx(293.15 - 0.0004, abs=0.5e-3)  # 1 mK steps
+    assert math.isnan(air.pressure_pa) and air.faults == ("pressure",)
+    assert air.relative_humidity == pytest.approx(0.45678, abs=0.5e-4) and air.counter == 21 % 16
+    material = decode_environment_material("ifm", 0x481, frames[0x481])
+    # 70 °C is beyond the field (0..65.534 °C): no reading, and the sensor says so.
+    assert material.temperatures_k[0] == pytest.approx(293.25) and math.isnan(material.temperatures_k[1])
+    assert material.fitted == (True, True, False) and material.faults == ("material2",)
+    with pytest.raises(ProtocolError, match="CRC mismatch"):
+        decode_environment_air("ifm", 0x381, DOC_AIR[:7] + bytes([DOC_AIR[7] ^ 1]))
+    with pytest.raises(ProtocolError, match="CRC mismatch"):  # the id is in the CRC
+        decode_environment_material("ifm", 0x481, DOC_AIR)
+
+
+def test_a_reading_needs_both_frames_of_one_cycle():
+    tracker = EnvironmentTracker()
+    air = decode_environment_air("ifm", 0x381, DOC_AIR)
+    material = decode_environment_material("ifm", 0x481, DOC_MATERIAL)
+    assert tracker.newest() == (None, math.inf)
+    assert tracker.on_material(material, 1.0) == (False, 0)  # no air frame for this cycle
+    tracker.on_air(air)
+    assert tracker.on_material(material, 2.0) == (True, 0)
+    reading, age = tracker.newest()
+    assert reading is not None and reading.timestamp == 2.0 and reading.counter == 5 and age < 1.0
+    assert reading.material_temperatures_k[0] == 293.65 and reading.relative_humidity == 0.5
+    # A cycle whose air frame was lost leaves the previous reading in place; the next complete one counts the gap.
+    later = dict(_frames.environment_frames(0x381, 0x481, 8, 21.0, 101000.0, 40.0, [], set()))
+    tracker.on_air(decode_environment_air("ifm", 0x381, later[0x381]))
+    assert tracker.on_material(decode_environment_material("ifm", 0x481, DOC_MATERIAL), 3.0) == (False, 0)
+    tracker.on_air(decode_environment_air("ifm", 0x381, later[0x381]))
+    assert tracker.on_material(decode_environment_material("ifm", 0x481, later[0x481]), 4.0) == (True, 2)
+    newest, _ = tracker.newest()
+    assert newest is not None and newest.air_temperature_k == 294.15 and newest.material_fitted == (False,) * 3
+
+
 def test_layout_is_data_validated_by_its_model():
     layout = FrameLayout.model_validate({"displacement_id": "0x185", "resolution": 1e-12})
     assert layout.displacement_id == 0x185 and layout.resolution == 1e-12 and layout.status_id == 0x281
@@ -88,6 +153,21 @@ def test_layout_is_data_validated_by_its_model():
         FrameLayout(status_rate=2000.0)
     with pytest.raises(ValueError, match="is not a number"):
         FrameLayout.model_validate({"reply_id": "0xZZ"})
+    with pytest.raises(ValueError, match="must differ"):
+        FrameLayout(environment_material_id=0x381)
+    with pytest.raises(ValueError, match="environment_rate 2000.0 Hz is above sample_rate"):
+        FrameLayout(environment_rate=2000.0)
+    assert FrameLayout.model_validate({"environment_air_id": "0x391"}).environment_air_id == 0x391
+
+
+def test_the_heads_optics_are_settings_in_si():
+    settings = SlcanSettings(port="/dev/null", optics={"nominal_pressure": 100_000.0})
+    assert settings.optics.nominal_pressure == 100_000.0 and settings.optics.vacuum_wavelength == 632.991e-9
+    assert (settings.optics.nominal_air_temperature, settings.optics.nominal_relative_humidity) == (293.15, 0.5)
+    with pytest.raises(SettingsError, match="nominal_relative_humidity"):
+        create({"adapter": "slcan", "port": "/dev/null", "optics": {"nominal_relative_humidity": 50.0}})
+    with pytest.raises(SettingsError, match="vacuum_wavelength"):
+        create({"adapter": "slcan", "port": "/dev/null", "optics": {"vacuum_wavelength": 633.0}})
 
 
 def test_create_rejects_bad_configs_clearly():

@@ -108,9 +108,10 @@ axes = st.lists(st.sampled_from(["x", "y", "z"]), min_size=1, max_size=3, unique
 def displacement_parameters(draw):
     groups = draw(st.integers(1, 3))
     start = draw(st.floats(-20, 20))
+    length = draw(st.floats(8, 70))  # at least 5 points per line: a step of at most a quarter of the line
     return DisplacementParameters(
-        axes=draw(axes), start_mm=start, stop_mm=start + draw(st.floats(1, 70)), step_mm=draw(st.floats(2, 20)),
-        repeats=draw(st.integers(1, 3)), groups=groups,
+        axes=draw(axes), start_mm=start, stop_mm=start + length, step_mm=draw(st.floats(length / 20, length / 4)),
+        repeats=draw(st.integers(2, 3)), groups=groups,
         group_start_offsets_mm=draw(st.lists(st.lists(st.floats(-1, 1), min_size=3, max_size=3),
                                              min_size=groups, max_size=groups)))
 
@@ -119,9 +120,10 @@ def displacement_parameters(draw):
 def angle_parameters(draw):
     groups = draw(st.integers(1, 3))
     start = draw(st.floats(-2, 2))
+    length = draw(st.floats(0.2, 2))
     return AngleParameters(
-        axes=draw(axes), start_deg=start, stop_deg=start + draw(st.floats(0.1, 2)), step_deg=draw(st.floats(0.05, 1)),
-        repeats=draw(st.integers(1, 3)), groups=groups,
+        axes=draw(axes), start_deg=start, stop_deg=start + length, step_deg=draw(st.floats(length / 20, length / 4)),
+        repeats=draw(st.integers(2, 3)), groups=groups,
         group_start_offsets_deg=draw(st.lists(st.floats(-0.2, 0.2), min_size=groups, max_size=groups)))
 
 

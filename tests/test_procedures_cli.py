@@ -77,6 +77,6 @@ def test_export_and_report(runs_dir, tmp_path, capsys):
     assert path.endswith("report.html") and "ISO 9283" in open(path, encoding="utf-8").read()
 
 
-def test_missing_store_is_a_clear_message(tmp_path):
-    with pytest.raises(SystemExit, match="no run store"):
-        main(["runs", "--runs-dir", str(tmp_path / "none")])
+def test_missing_store_is_a_clear_message(tmp_path, capsys):
+    assert main(["runs", "--runs-dir", str(tmp_path / "none")]) == 1
+    assert capsys.readouterr().err.startswith("no run store in")

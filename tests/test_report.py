@@ -42,7 +42,7 @@ def test_iso_report_has_the_table_truth_and_plots(tmp_path):
 
 
 def test_calibration_report_has_curves_before_and_after(tmp_path):
-    run, samples, events = _run(tmp_path, "angle_calibration", repeats=1, axes="[z]")
+    run, samples, events = _run(tmp_path, "angle_calibration", repeats=2, axes="[z]")
     html = render_report(run, samples, events)
     assert "c: error against measured value" in html and "error (″)" in html
     assert "Reference against simulated truth" in html

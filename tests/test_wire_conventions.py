@@ -11,7 +11,9 @@ written from ``docs/rotary_table.md`` and ``docs/interferometer.md`` alone, so a
   refusal (error 5), servo on, reference move, soft limits (error 7) and answer format;
 - raw CAN frames captured with python-can, decoded here (int40 little-endian, counter, status
   bits, CRC-8/SAE-J1850), against the interferometer head's true displacement; raw socketcand text
-  read from a plain socket (3-hex-digit ids, ``sec.usec`` receive timestamps in bus order);
+  read from a plain socket (3-hex-digit ids, ``sec.usec`` receive timestamps in bus order); the
+  environmental unit's frames (uint16 fields, offsets, fault bits, cycle counter) against the air
+  of the ambient model, computed here from the seed and the frame's time;
 - the driver against the same truth, and the same check run on a driver with its word order
   swapped, its byte order swapped or its scale off (monkeypatched here only) must fail.
 """
@@ -38,6 +40,7 @@ from drivers.interferometer import create as create_interferometer
 from drivers.rotary_table import RegisterMap
 from drivers.rotary_table import create as create_table
 from sim_devices import World, WorldConfig
+from sim_devices.ambient import AmbientModel
 from sim_devices.interferometer import InterferometerTwin, move_opr
 from sim_devices.rotary_table import RotaryTableTwin
 
@@ -503,9 +506,9 @@ def test_can_frames_decode_to_the_true_displacement(ifm_twin, raw_bus, move):
 
     displacement = [f for f in frames if f.arbitration_id == DISPLACEMENT_ID]
     assert len(displacement) >= 50 and all(_good_crc(f) and not f.is_extended_id for f in displacement)
-    # Sign, byte order and scale: every frame is the true displacement (scale error included) plus
-    # the head's noise (2 nm rms; 6 σ) and the rounding to a count.
-    expected = (1.0 + truth["scale_error"]) * truth["true_displacement"]
+    # Sign, byte order and scale: every frame is the true displacement (scale error and the air's
+    # n/n_nominal included) plus the head's noise (2 nm rms; 6 σ) and the rounding to a count.
+    expected = (1.0 + truth["scale_error"]) * truth["refraction_ratio"] * truth["true_displacement"]
     assert abs(expected - move) < 1e-6  # the truth itself: the reflector moved by ``move`` along the beam
     bound = 6 * twin.config.noise_std + RESOLUTION
     assert all(abs(_displacement(bytes(f.data)) - expected) <= bound for f in displacement)
@@ -537,6 +540,89 @@ def test_a_command_with_a_bad_crc_is_ignored(ifm_twin, raw_bus):
     assert not [f for f in frames if f.arbitration_id == REPLY_ID]
     assert twin.truth()["datum_generation"] == 0
     assert _command(raw_bus, DATUM, token=10)[3] == 1  # the same command with its CRC right is done
+
+
+# docs/interferometer.md, environmental unit: per cycle (environment_rate, 1 Hz by default) the air
+# frame 0x381 then the material frame 0x481. uint16 little-endian fields, 0xFFFF = no reading: air
+# temperature in mK above 0 °C, pressure in Pa above 60 000 Pa, humidity in 0.01 % RH; material
+# temperatures 1..3 in mK above 0 °C. Byte 6: bits 0..2 fault (air: temperature, pressure, humidity;
+# material: 1..3), bits 4..7 the cycle counter (+1 per cycle, mod 16, the same in both frames).
+ENV_AIR_ID, ENV_MATERIAL_ID = 0x381, 0x481
+NO_READING = 0xFFFF
+ENV_SEED = 14
+
+
+def _u16(data: bytes, index: int) -> int:
+    return int.from_bytes(data[2 * index:2 * index + 2], "little")
+
+
+@pytest.fixture
+def env_twin() -> Iterator[tuple[World, InterferometerTwin]]:
+    """Two material sensors, 20 cycles a second, sensors without noise (their offsets stay: they are truth)."""
+    world = World(WorldConfig(seed=ENV_SEED))
+    silent = dict.fromkeys(("air_temperature_noise", "pressure_noise", "humidity_noise", "material_noise"), 0.0)
+    twin = InterferometerTwin(world, {"layout": {"environment_rate": 20.0}, "ambient": {"material_sensors": 2},
+                                      "environment_sensors": silent})
+    twin.start()
+    try:
+        yield world, twin
+    finally:
+        twin.stop()
+        world.truth.close()
+
+
+@pytest.fixture
+def env_bus(env_twin) -> Iterator[can.BusABC]:
+    _, twin = env_twin
+    bus = can.Bus(interface="slcan", channel=twin.endpoints["slcan"]["port"], bitrate=1_000_000, sleep_after_open=0)
+    try:
+        yield bus
+    finally:
+        bus.shutdown()
+
+
+def test_environment_frames_decode_to_the_twins_air(env_twin, env_bus):
+    _, twin = env_twin
+    unit = twin.environment()
+    model = AmbientModel(ENV_SEED, twin.config.ambient)  # the cell's air, from the seed alone
+    offsets = unit["sensor_offsets"]
+    frames = [f for f in _capture(env_bus, 0.6) if f.arbitration_id in (ENV_AIR_ID, ENV_MATERIAL_ID)]
+    assert len(frames) >= 16 and all(_good_crc(f) and not f.is_extended_id for f in frames)
+    # Air first, then the material frame of the same cycle; the counter steps by one per cycle.
+    start = 0 if frames[0].arbitration_id == ENV_AIR_ID else 1
+    pairs = [(frames[i], frames[i + 1]) for i in range(start, len(frames) - 1, 2)]
+    assert all(a.arbitration_id == ENV_AIR_ID and m.arbitration_id == ENV_MATERIAL_ID for a, m in pairs)
+    assert all(a.data[6] >> 4 == m.data[6] >> 4 for a, m in pairs)
+    counters = [a.data[6] >> 4 for a, _ in pairs]
+    assert all((b - a) % 16 == 1 for a, b in zip(counters, counters[1:])) or twin.stats()["slcan_overflows"]
+    for air_frame, material_frame in pairs:
+        air, material = bytes(air_frame.data), bytes(material_frame.data)
+        truth = model.at(air_frame.timestamp - unit["origin"])
+        # Half a count of each field, plus the air's drift over up to 2 s between the twin's sending and
+        # python-can's reading (slcan frames are stamped on reading): at most 4.6e-4 K/s, 0.02 Pa/s, 0.003 %/s.
+        assert abs(_u16(air, 0) / 1000 - (truth.air_temperature_c + offsets["air_temperature"])) <= 0.0014
+        assert abs(_u16(air, 1) + 60_000 - (truth.pressure_pa + offsets["pressure"])) <= 0.6
+        assert abs(_u16(air, 2) / 100 - (truth.relative_humidity_percent + offsets["humidity"])) <= 0.011
+        for index in range(2):
+            expected = truth.material_temperatures_c[index] + offsets[f"material{index + 1}"]
+            assert abs(_u16(material, index) / 1000 - expected) <= 0.0014
+        assert _u16(material, 2) == NO_READING  # the third sensor is not fitted: no reading, no fault
+        assert air[6] & 0x0F == 0 and material[6] & 0x0F == 0
+
+    twin.sensor_fault("pressure")
+    twin.sensor_fault("material2")
+    frames = _capture(env_bus, 0.4)
+
+    def from_first_faulty(can_id: int) -> list[bytes]:
+        """The frames of ``can_id`` from the first that reports a fault on (the bus still held older ones)."""
+        data = [bytes(f.data) for f in frames if f.arbitration_id == can_id]
+        return data[next(i for i, d in enumerate(data) if d[6] & 0x0F):]
+
+    air, material = from_first_faulty(ENV_AIR_ID), from_first_faulty(ENV_MATERIAL_ID)
+    assert len(air) >= 2 and len(material) >= 2
+    assert all(_u16(d, 1) == NO_READING and d[6] & 0x0F == 0b010 for d in air)  # pressure: bit 1
+    assert all(_u16(d, 0) != NO_READING and _u16(d, 2) != NO_READING for d in air)
+    assert all(_u16(d, 1) == NO_READING and d[6] & 0x0F == 0b010 for d in material)  # material 2: bit 1
 
 
 # docs/interferometer.md, socketcand: "< hi >" alone, "< ok >" to open and rawmode, then
@@ -584,7 +670,8 @@ def _interferometer_error(ifm, world: World, twin: InterferometerTwin, move: flo
         measured = ifm.average(0.1)
         moved = world.opr_in_m()[:3, 3] - start
         truth = twin.truth()
-        expected = (1.0 + truth["scale_error"]) * sum(u * d for u, d in zip(truth["beam_direction"], moved))
+        expected = (1.0 + truth["scale_error"]) * truth["refraction_ratio"] * sum(
+            u * d for u, d in zip(truth["beam_direction"], moved))
         samples = round(0.1 * twin.config.layout.sample_rate)
         bound = 6 * twin.config.noise_std / math.sqrt(samples) + 2 * RESOLUTION
         return abs(measured - expected), bound
@@ -617,3 +704,42 @@ def test_the_driver_vs_truth_check_fails_on_a_wrong_byte_order_or_scale(ifm_twin
             assert error > bound, "a scale off by 10 went unnoticed"
         error, bound = _interferometer_error(ifm, world, twin)
         assert error <= bound
+
+
+def _environment_error(ifm, twin: InterferometerTwin) -> float:
+    """|driver − truth| of the air temperature (K) in a reading taken from now on."""
+    unit = twin.environment()
+    since = time.time()
+
+    def fresh() -> bool:
+        try:
+            return ifm.environment(max_age=2.0, strict=False).received > since
+        except DeviceError:
+            return False
+
+    _wait_until(fresh, "a fresh reading")
+    reading = ifm.environment(max_age=2.0, strict=False)
+    truth = AmbientModel(ENV_SEED, twin.config.ambient).at(reading.timestamp - unit["origin"])
+    expected = truth.air_temperature_c + unit["sensor_offsets"]["air_temperature"] + 273.15
+    return abs(reading.air_temperature_k - expected)
+
+
+def test_the_driver_vs_truth_check_fails_on_a_wrong_environment_byte_order(env_twin, monkeypatch):
+    from drivers.interferometer import _can  # the driver's module, patched here only
+
+    _, twin = env_twin
+    entry = {**twin.station_entry("socketcand"), "layout": {"environment_rate": 20.0}}
+    bound = 0.0006
+    with create_interferometer(entry, name="interferometer") as ifm:
+        assert _environment_error(ifm, twin) <= bound
+        original = _can.decode_environment_air
+
+        def big_endian(device, can_id, data):
+            frame = original(device, can_id, data)
+            code = int.from_bytes(bytes(data[0:2]), "big")
+            return dataclasses.replace(frame, air_temperature_k=code / 1000 + 273.15)
+
+        with monkeypatch.context() as patch:
+            patch.setattr(_can, "decode_environment_air", big_endian)
+            assert _environment_error(ifm, twin) > bound, "a swapped byte order went unnoticed"
+        assert _environment_error(ifm, twin) <= bound

@@ -14,9 +14,16 @@ from typing import Any
 from drivers._settings import SettingsUnion
 from drivers.interferometer._can import CanInterferometer
 from drivers.interferometer._feed import CanSample
-from drivers.interferometer._interface import BeamInterrupted, DatumLost, FeedGap, Interferometer, Sample
+from drivers.interferometer._interface import (
+    BeamInterrupted,
+    DatumLost,
+    EnvironmentReading,
+    FeedGap,
+    Interferometer,
+    Sample,
+)
 from drivers.interferometer._layout import FrameLayout, StatusFrame, crc8_j1850, frame_crc
-from drivers.interferometer._settings import InterferometerSettings, SlcanSettings, SocketcandSettings
+from drivers.interferometer._settings import HeadOptics, InterferometerSettings, SlcanSettings, SocketcandSettings
 
 _SETTINGS_UNION: SettingsUnion[InterferometerSettings] = SettingsUnion(InterferometerSettings, "interferometer")
 ADAPTERS = tuple(_SETTINGS_UNION.models)
@@ -46,8 +53,10 @@ __all__ = [
     "CanInterferometer",
     "CanSample",
     "DatumLost",
+    "EnvironmentReading",
     "FeedGap",
     "FrameLayout",
+    "HeadOptics",
     "Interferometer",
     "InterferometerSettings",
     "Sample",

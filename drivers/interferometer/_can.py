@@ -24,8 +24,9 @@ from typing import Any
 import can
 
 from drivers._errors import DeviceConnectionError, DeviceError, DeviceTimeout, ProtocolError
+from drivers.interferometer._environment import EnvironmentTracker, require_usable
 from drivers.interferometer._feed import CanSample, FeedBuffer, require_valid
-from drivers.interferometer._interface import BeamInterrupted, FeedGap
+from drivers.interferometer._interface import BeamInterrupted, EnvironmentReading, FeedGap
 from drivers.interferometer._layout import (
     COUNTER_MODULUS,
     OPCODE_DATUM,
@@ -34,6 +35,8 @@ from drivers.interferometer._layout import (
     ReplyFrame,
     StatusFrame,
     decode_displacement,
+    decode_environment_air,
+    decode_environment_material,
     decode_reply,
     decode_status,
     encode_command,
@@ -78,6 +81,7 @@ class CanInterferometer:
         self.name = name
         self.settings = settings
         self.layout = settings.layout
+        self.optics = settings.optics
         if isinstance(settings, SocketcandSettings):
             self._transport = "socketcand"
             self._bus_kwargs: dict[str, Any] = {"interface": "socketcand", "host": settings.host,
@@ -112,9 +116,11 @@ class CanInterferometer:
         self._stats_lock = threading.Lock()
         self._stats = dict.fromkeys(
             ("samples", "gaps", "lost_samples", "stalls", "protocol_errors", "garbage_reads", "reconnects",
-             "foreign_frames", "status_frames"), 0)
+             "foreign_frames", "status_frames", "environment_readings", "environment_missed",
+             "environment_incomplete"), 0)
         self._protocol_errors: deque[ProtocolError] = deque(maxlen=20)
 
+        self._environment = EnvironmentTracker()
         self._status: StatusFrame | None = None
         self._status_mono = 0.0
         self._reply_cond = threading.Condition()
@@ -211,11 +217,48 @@ class CanInterferometer:
         wait = self.command_timeout if timeout is None else float(timeout)
         self._buffer.get(first_after, time.monotonic() + wait, "zero")
 
+    def environment(self, max_age: float | None = None, *, strict: bool = True) -> EnvironmentReading:
+        """The newest reading of the environmental unit (air temperature K, pressure Pa, relative
+        humidity as a fraction, material temperatures K).
+
+        Parameters
+        ----------
+        max_age : float, optional
+            Seconds (host clock) the reading may be old; default three measuring cycles
+            (3 / ``layout.environment_rate``).
+        strict : bool
+            True (default): ``DeviceFault`` when a sensor reports a fault or an air sensor gives no
+            reading. False: such a reading is returned, NaN where there is no value, the faulty
+            sensors named in ``faults``.
+
+        Raises
+        ------
+        FeedGap
+            No reading yet, or the newest is older than ``max_age``.
+        DeviceConnectionError
+            The feed is closed or the connection is down.
+        DeviceFault
+            See ``strict``.
+        """
+        limit = 3.0 / self.layout.environment_rate if max_age is None else float(max_age)
+        reading, age = self._environment.newest()
+        if reading is None or age > limit:
+            failure = self._connection_failure()
+            if failure is not None:
+                raise failure
+            what = ("no environmental reading received yet" if reading is None
+                    else f"newest environmental reading is {age:.2f} s old")
+            raise FeedGap(self.name, "environment", f"{what} (max_age {limit:g} s)")
+        if strict:
+            require_usable(self.name, "environment", reading)
+        return reading
+
     # ------------------------------------------------------------------------------ health
     def stats(self) -> dict[str, Any]:
         """Counters since ``open``: samples, gaps, lost_samples, stalls, protocol_errors,
-        garbage_reads, reconnects, foreign_frames, status_frames; plus transport, connected and
-        the last errors."""
+        garbage_reads, reconnects, foreign_frames, status_frames, environment_readings,
+        environment_missed (cycles missing between two readings), environment_incomplete (a material
+        frame without its cycle's air frame); plus transport, connected and the last errors."""
         with self._stats_lock:
             out: dict[str, Any] = dict(self._stats)
             out["last_protocol_error"] = str(self._protocol_errors[-1]) if self._protocol_errors else None
@@ -336,6 +379,13 @@ class CanInterferometer:
                 with self._reply_cond:
                     self._replies[reply.token] = (reply, self._buffer.next_seq)
                     self._reply_cond.notify_all()
+            elif can_id == layout.environment_air_id:
+                self._environment.on_air(decode_environment_air(self.name, can_id, data))
+            elif can_id == layout.environment_material_id:
+                frame = decode_environment_material(self.name, can_id, data)
+                complete, missed = self._environment.on_material(frame, float(message.timestamp))
+                self._count("environment_readings" if complete else "environment_incomplete")
+                self._count("environment_missed", missed)
             else:
                 self._count("foreign_frames")
         except ProtocolError as exc:

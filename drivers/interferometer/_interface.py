@@ -1,11 +1,15 @@
-"""The laser interferometer interface every adapter implements. Displacements in metres."""
+"""The laser interferometer interface every adapter implements. Displacements in metres; the
+environmental unit's readings in kelvin, pascal and relative humidity as a fraction."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 from drivers._errors import DeviceError
+
+if TYPE_CHECKING:
+    from drivers.interferometer._settings import HeadOptics
 
 
 class BeamInterrupted(DeviceError):
@@ -30,9 +34,32 @@ class Sample:
     counter: int
 
 
+@dataclass(frozen=True)
+class EnvironmentReading:
+    """One measuring cycle of the head's environmental unit (air along the beam, material sensors).
+
+    ``timestamp`` is the material frame's timestamp as the adapter documents it for samples (the
+    cycle's receive time on the bus for socketcand, the host's clock for slcan); ``received`` the
+    host's clock (``time.time()``) when the driver assembled the reading. A value is NaN when there
+    is no reading: a sensor not fitted (``material_fitted`` False) or reporting a fault (its name
+    in ``faults``: ``air_temperature``, ``pressure``, ``humidity``, ``material1``..``material3``).
+    """
+
+    timestamp: float
+    received: float
+    counter: int  # cycle counter, mod 16
+    air_temperature_k: float
+    pressure_pa: float
+    relative_humidity: float  # a fraction, 0..1
+    material_temperatures_k: tuple[float, float, float]
+    material_fitted: tuple[bool, bool, bool]
+    faults: tuple[str, ...]
+
+
 @runtime_checkable
 class Interferometer(Protocol):
     name: str
+    optics: HeadOptics  # the vacuum wavelength and the nominal air the head computes displacements with
 
     def open(self) -> None:
         """Connect (every wait bounded); raises ``DeviceConnectionError`` or ``DeviceTimeout``."""
@@ -57,4 +84,10 @@ class Interferometer(Protocol):
 
     def zero(self) -> None:
         """Set the datum: the current position reads 0 from now on."""
+        ...
+
+    def environment(self, max_age: float | None = None, *, strict: bool = True) -> EnvironmentReading:
+        """The newest reading of the environmental unit; ``FeedGap`` if it is older than ``max_age``
+        seconds (default: three measuring cycles), ``DeviceFault`` if a sensor reports a fault or an
+        air sensor gives no reading (unless ``strict`` is False: then the reading, NaN where none)."""
         ...

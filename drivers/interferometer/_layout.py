@@ -37,10 +37,22 @@ Command (host → head, ``command_id``, default 0x601) and reply (``reply_id``, 
     command: 0 opcode (1 = set datum, 2 = sync), 1 token, 2..6 zero, 7 CRC-8
     reply:   0 opcode, 1 token, 2 result (0 = done, 1 = refused: beam not OK, 2 = unknown opcode),
              3 datum generation, 4..6 zero, 7 CRC-8
+
+Environmental unit, one measuring cycle every 1/``environment_rate`` s: the air frame
+(``environment_air_id``, default 0x381), then the material frame (``environment_material_id``,
+default 0x481), both carrying the cycle counter. Every value is a uint16, little-endian, 0xFFFF
+when there is no reading (sensor not fitted, or faulty: then its fault bit is set)::
+
+    air:      0..1 air temperature, 0.001 K above 273.15 K; 2..3 pressure, 1 Pa above 60 000 Pa;
+              4..5 relative humidity, 0.01 %; 6 bits 0..2 fault (air temperature, pressure,
+              humidity), bit 3 zero, bits 4..7 cycle counter (+1 per cycle, mod 16); 7 CRC-8
+    material: 0..1, 2..3, 4..5 material temperatures 1..3, 0.001 K above 273.15 K;
+              6 bits 0..2 fault (material 1..3), bit 3 zero, bits 4..7 cycle counter; 7 CRC-8
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Annotated
 
@@ -59,6 +71,13 @@ STATUS_DATUM_SET = 0x04
 STATUS_OVERRANGE = 0x08
 
 AXIS_NAMES = ("x", "y", "z")
+NO_READING = 0xFFFF
+MILLIKELVIN = 1000  # temperature counts per kelvin
+ZERO_CELSIUS_MK = 273_150  # temperatures count from 0 °C
+PRESSURE_BASE_PA = 60_000  # pressure counts (1 Pa) from 60 kPa
+HUMIDITY_COUNTS = 10_000  # relative humidity counts per unit (0.01 %)
+AIR_SENSORS = ("air_temperature", "pressure", "humidity")
+MATERIAL_SENSORS = ("material1", "material2", "material3")
 FRAME_LENGTH = 8
 COUNTER_MODULUS = 256
 DISPLACEMENT_BITS = 40
@@ -107,14 +126,21 @@ class FrameLayout(BaseModel):
     )
     sample_rate: float = Field(1000.0, gt=0, le=10_000, description="displacement frames per second, Hz")
     status_rate: float = Field(10.0, gt=0, description="heartbeat frames per second, Hz (at most sample_rate)")
+    environment_air_id: CanId = 0x381
+    environment_material_id: CanId = 0x481
+    environment_rate: float = Field(
+        1.0, gt=0, description="environmental unit's measuring cycles per second, Hz (at most sample_rate)"
+    )
 
     @model_validator(mode="after")
     def _consistent(self) -> FrameLayout:
-        ids = [self.displacement_id, self.status_id, self.command_id, self.reply_id]
+        ids = [self.displacement_id, self.status_id, self.command_id, self.reply_id, self.environment_air_id,
+               self.environment_material_id]
         if len(set(ids)) != len(ids):
-            raise ValueError(f"the four CAN ids must differ, got {[hex(i) for i in ids]}")
-        if self.status_rate > self.sample_rate:
-            raise ValueError(f"status_rate {self.status_rate} Hz is above sample_rate {self.sample_rate} Hz")
+            raise ValueError(f"the six CAN ids must differ, got {[hex(i) for i in ids]}")
+        for name in ("status_rate", "environment_rate"):
+            if getattr(self, name) > self.sample_rate:
+                raise ValueError(f"{name} {getattr(self, name)} Hz is above sample_rate {self.sample_rate} Hz")
         return self
 
     @property
@@ -181,6 +207,23 @@ class ReplyFrame:
     datum_generation: int
 
 
+@dataclass(frozen=True)
+class EnvironmentAirFrame:
+    air_temperature_k: float  # NaN: no reading
+    pressure_pa: float
+    relative_humidity: float  # a fraction
+    faults: tuple[str, ...]  # sensors reporting a fault
+    counter: int  # cycle counter, mod 16
+
+
+@dataclass(frozen=True)
+class EnvironmentMaterialFrame:
+    temperatures_k: tuple[float, float, float]  # NaN: no reading
+    fitted: tuple[bool, bool, bool]  # a sensor is fitted when it gives a reading or reports a fault
+    faults: tuple[str, ...]
+    counter: int
+
+
 def check_frame(device: str, can_id: int, data: bytes, what: str) -> None:
     """Raise ``ProtocolError`` unless ``data`` is a full 8-byte frame with a good CRC."""
     if len(data) != FRAME_LENGTH:
@@ -214,6 +257,35 @@ def decode_status(device: str, can_id: int, data: bytes) -> StatusFrame:
 def decode_reply(device: str, can_id: int, data: bytes) -> ReplyFrame:
     check_frame(device, can_id, data, "reply")
     return ReplyFrame(opcode=data[0], token=data[1], result=data[2], datum_generation=data[3])
+
+
+def _uint16(data: bytes, index: int, counts_per_unit: int, base_counts: int) -> float:
+    """Field ``index`` (bytes 2·index, 2·index + 1) as ``(code + base_counts) / counts_per_unit``."""
+    code = int.from_bytes(data[2 * index:2 * index + 2], "little")
+    return math.nan if code == NO_READING else (code + base_counts) / counts_per_unit
+
+
+def _faults(status: int, names: tuple[str, ...]) -> tuple[str, ...]:
+    return tuple(name for bit, name in enumerate(names) if status >> bit & 1)
+
+
+def decode_environment_air(device: str, can_id: int, data: bytes) -> EnvironmentAirFrame:
+    check_frame(device, can_id, data, "environment air")
+    return EnvironmentAirFrame(air_temperature_k=_uint16(data, 0, MILLIKELVIN, ZERO_CELSIUS_MK),
+                               pressure_pa=_uint16(data, 1, 1, PRESSURE_BASE_PA),
+                               relative_humidity=_uint16(data, 2, HUMIDITY_COUNTS, 0),
+                               faults=_faults(data[6], AIR_SENSORS), counter=data[6] >> 4)
+
+
+def decode_environment_material(device: str, can_id: int, data: bytes) -> EnvironmentMaterialFrame:
+    check_frame(device, can_id, data, "environment material")
+    temperatures = (_uint16(data, 0, MILLIKELVIN, ZERO_CELSIUS_MK), _uint16(data, 1, MILLIKELVIN, ZERO_CELSIUS_MK),
+                    _uint16(data, 2, MILLIKELVIN, ZERO_CELSIUS_MK))
+    faults = _faults(data[6], MATERIAL_SENSORS)
+    fitted = (not math.isnan(temperatures[0]) or "material1" in faults,
+              not math.isnan(temperatures[1]) or "material2" in faults,
+              not math.isnan(temperatures[2]) or "material3" in faults)
+    return EnvironmentMaterialFrame(temperatures_k=temperatures, fitted=fitted, faults=faults, counter=data[6] >> 4)
 
 
 def encode_command(command_id: int, opcode: int, token: int) -> bytes:

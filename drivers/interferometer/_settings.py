@@ -8,12 +8,29 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from pydantic import Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from drivers._settings import DeviceSettings
 from drivers.interferometer._layout import COUNTER_MODULUS, FrameLayout
 
+
+class HeadOptics(BaseModel):
+    """How the head turns fringes into metres: its laser's vacuum wavelength and the nominal air
+    whose refractive index it uses (the displacement is compensated for the real air by the host,
+    from the environmental unit's readings). SI units; any subset of fields may be given."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    vacuum_wavelength: float = Field(632.991e-9, ge=300e-9, le=1700e-9, description="laser vacuum wavelength, m")
+    nominal_air_temperature: float = Field(293.15, gt=0, description="nominal air temperature, K")
+    nominal_pressure: float = Field(101_325.0, gt=0, description="nominal air pressure, Pa")
+    nominal_relative_humidity: float = Field(0.5, ge=0, le=1, description="nominal relative humidity, a fraction")
+    nominal_co2: float = Field(400.0, ge=0, description="nominal CO2 content, ppm (µmol/mol)")
+    air_co2: float = Field(400.0, ge=0, description="CO2 content assumed for the measured air (the unit has no "
+                           "CO2 sensor), ppm")
+
 Layout = Annotated[FrameLayout, Field(description="CAN ids, scaling and rates of the feed (any subset of fields)")]
+Optics = Annotated[HeadOptics, Field(description="the head's vacuum wavelength and nominal air (any subset of fields)")]
 RingCapacity = Annotated[int, Field(ge=16, description="samples kept in the ring buffer (65536: a minute at 1 kHz)")]
 OpenTimeout = Annotated[float, Field(gt=0, description="seconds allowed for one attempt to open the bus")]
 OpenAttempts = Annotated[int, Field(ge=1, le=20, description="attempts before open() gives up")]
@@ -43,6 +60,7 @@ class SocketcandSettings(DeviceSettings):
     port: int = Field(ge=1, le=65535, description="the socketcand daemon's TCP port (29536 by convention)")
     channel: str = Field("can0", min_length=1, description="CAN interface name on the daemon's host")
     layout: Layout = Field(default_factory=FrameLayout)
+    optics: Optics = Field(default_factory=HeadOptics)
     ring_capacity: RingCapacity = 65536
     open_timeout: OpenTimeout = 5.0
     open_attempts: OpenAttempts = 5
@@ -64,6 +82,7 @@ class SlcanSettings(DeviceSettings):
     port: str = Field(min_length=1, description="serial device of the adapter (/dev/ttyACM0)")
     bitrate: int = Field(1_000_000, gt=0, le=1_000_000, description="CAN bit rate, bit/s")
     layout: Layout = Field(default_factory=FrameLayout)
+    optics: Optics = Field(default_factory=HeadOptics)
     ring_capacity: RingCapacity = 65536
     open_timeout: OpenTimeout = 5.0
     open_attempts: OpenAttempts = 5

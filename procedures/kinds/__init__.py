@@ -13,7 +13,7 @@ from types import MappingProxyType
 from typing import Any
 
 from procedures.kinds import angle_calibration, displacement_calibration, iso9283_repeatability
-from procedures.kinds._parameters import AxisName, MotionParameters, ProcedureBase
+from procedures.kinds._parameters import AxisName, MotionParameters, ProcedureBase, retry_wait
 from procedures.kinds._protocol import (
     Analysis,
     AnalysisContext,
@@ -68,4 +68,5 @@ __all__ = [
     "Step",
     "StepContext",
     "kind_of",
+    "retry_wait",
 ]

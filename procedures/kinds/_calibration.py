@@ -2,22 +2,91 @@
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Mapping, Sequence
-from pathlib import Path
+from pathlib import Path, PurePosixPath, PureWindowsPath
 from typing import Any
 
 import numpy as np
+from pydantic import ValidationInfo
 
 from procedures._science import COMPONENTS
 from procedures._store import Sample
 from procedures.kinds._protocol import Analysis, AnalysisContext
 
+MAX_PLAN_STEPS = 100_000
+"""Largest plan a procedure file may ask for (a 30-cycle ISO run is 155 steps, the paper's
+displacement calibration 405); more is a typo such as ``step_mm: 1e-9``, refused before any plan."""
+MIN_POINTS_PER_LINE = 5  # instrument.compensation.calibrate leaves one point out over at least 5 points
+MIN_REPEATS = 2  # ... and estimates its noise floor from repeated observations at a point
+
+
+def line_points(start: float, stop: float, step: float) -> int:
+    """How many points ``inclusive_range(start, stop, step)`` has (``MAX_PLAN_STEPS + 1`` if more)."""
+    ratio = (stop - start) / step
+    if not math.isfinite(ratio) or ratio > MAX_PLAN_STEPS:
+        return MAX_PLAN_STEPS + 1
+    return int(math.floor(ratio + 1e-9)) + 1
+
 
 def inclusive_range(start: float, stop: float, step: float) -> np.ndarray:
     """``start, start + step, ...`` up to and including ``stop`` (within rounding)."""
-    count = int(np.floor((stop - start) / step + 1e-9)) + 1
-    return start + step * np.arange(count)
+    return start + step * np.arange(line_points(start, stop, step))
+
+
+def stored_run(info: ValidationInfo) -> bool:
+    """Whether the file being validated is a stored run's (``load_procedure(..., stored=True)``): it
+    was accepted when it was queued, so rules added later for new runs do not refuse it now."""
+    return isinstance(info.context, Mapping) and bool(info.context.get("stored"))
+
+
+def check_calibration_size(points: int, lines: int, repeats: int, step_field: str, info: ValidationInfo) -> None:
+    """Refuse a calibration plan that is too large, or (for a new run) one the fit cannot use.
+
+    Raises ValueError naming the field first (so the error points at its line).
+    """
+    total = points * lines * repeats
+    if points > MAX_PLAN_STEPS or total > MAX_PLAN_STEPS:
+        shown = f"more than {MAX_PLAN_STEPS}" if points > MAX_PLAN_STEPS else str(points)
+        raise ValueError(f"{step_field} gives {shown} points per line, a plan of "
+                         f"{'more than ' + str(MAX_PLAN_STEPS) if points > MAX_PLAN_STEPS else total} steps; "
+                         f"a procedure may have at most {MAX_PLAN_STEPS}")
+    if stored_run(info):
+        return
+    if points < MIN_POINTS_PER_LINE:
+        raise ValueError(f"{step_field} gives {points} points per line; the calibration fit needs at least "
+                         f"{MIN_POINTS_PER_LINE} (a smaller step or a longer range)")
+    if repeats < MIN_REPEATS:
+        raise ValueError(f"repeats is {repeats}; the calibration fit needs at least {MIN_REPEATS} repeats "
+                         "(its noise floor comes from repeated points)")
+
+
+def check_record_path(value: str | None) -> str | None:
+    """A record path must stay inside the runs folder: relative, without ``..``."""
+    if value is None:
+        return value
+    parts = PurePosixPath(value).parts + PureWindowsPath(value).parts
+    if not value.strip() or PurePosixPath(value).is_absolute() or PureWindowsPath(value).is_absolute() \
+            or ".." in parts or "\x00" in value:
+        raise ValueError(f"expected a path relative to the runs folder, without '..' (got {value!r}); "
+                         "the record is written there (default: in the run's own folder)")
+    return value
+
+
+def record_file(record_path: str | None, ctx: AnalysisContext, kind: str) -> Path:
+    """Where the record goes: ``record_path`` inside the runs folder, or ``<run folder>/calibration-<kind>.json``.
+
+    Raises ValueError if the path leads out of the runs folder (a symbolic link, say).
+    """
+    if not record_path:
+        return ctx.run_dir / f"calibration-{kind}.json"
+    runs_dir = ctx.run_dir.parent.resolve()  # a run's folder is <runs folder>/<run id>
+    check_record_path(record_path)
+    path = (runs_dir / record_path).resolve()
+    if not path.is_relative_to(runs_dir):
+        raise ValueError(f"record_path {record_path!r} leads out of the runs folder {runs_dir} (to {path})")
+    return path
 
 
 def analyse_calibration(samples: Sequence[Sample], ctx: AnalysisContext, *, kind: str,
@@ -40,9 +109,10 @@ def analyse_calibration(samples: Sequence[Sample], ctx: AnalysisContext, *, kind
             continue
         component = component_of_axis[sample.meta["axis"]]
         index = COMPONENTS.index(component)
+        reference = sample.reference or {}
         entry = {"group": sample.meta["group"], "repeat": sample.meta["repeat"], "point": sample.meta["point"],
                  "nominal": sample.meta["nominal"], "measured": sample.solved["pose"][index],
-                 "reference": (sample.reference or {})["value"]}
+                 "reference": reference["value"], "datum_set_at": reference.get("datum_set_at")}
         if ctx.truth is not None and sample.t_measured is not None:
             state = ctx.truth.at(sample.t_measured)
             if state is not None:
@@ -51,10 +121,12 @@ def analyse_calibration(samples: Sequence[Sample], ctx: AnalysisContext, *, kind
         data.setdefault(component, []).append(entry)
     if not data:
         raise ValueError("no successful calibration samples to fit")
+    for rows in data.values():
+        join_datums(rows)
     fit = ctx.science.fit_calibration(kind, data, {
         "run_id": ctx.run_id, "date": time.strftime("%Y-%m-%dT%H:%M:%S"),
         "references": [{"instrument": reference_instrument, "components": sorted(data)}]})
-    path = Path(record_path) if record_path else ctx.run_dir / f"calibration-{kind}.json"
+    path = record_file(record_path, ctx, kind)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(fit.record_json, encoding="utf-8")
     results = {
@@ -63,6 +135,60 @@ def analyse_calibration(samples: Sequence[Sample], ctx: AnalysisContext, *, kind
         "failed_samples": sum(1 for s in samples if not s.ok),
     }
     return Analysis(results=results, calibration_record_id=fit.record_id)
+
+
+def join_datums(rows: list[dict[str, Any]]) -> None:
+    """Bring every reference datum of a group onto the group's first one, in place.
+
+    A group whose reference was re-established (``datum_set_at`` differs between its rows, see
+    ``displacement_calibration``) holds rows whose references are offset by an unknown amount: the
+    robot's repeatability where it was zeroed again (~10 µm). At one calibration point the
+    instrument's systematic error is the same under both datums, so the offset is the mean, over
+    the points measured under both, of the difference of (reference − measured) between them. The
+    later datum's references are shifted by it (``datum_offset``; ``reference_raw`` keeps the
+    value read; ``datum``: 0 for the first datum, 1 for the next ...), and the group keeps its
+    repeats, as the calibration's noise floor needs. A datum that shares no point with the earlier
+    ones (only possible with a single repeat) becomes a calibration group of its own instead, whose
+    offset the group alignment estimates.
+    """
+    by_group: dict[int, dict[float, list[dict[str, Any]]]] = {}
+    for row in rows:
+        stamp = row.pop("datum_set_at", None)
+        by_group.setdefault(row["group"], {}).setdefault(-1.0 if stamp is None else float(stamp), []).append(row)
+    next_group = max(by_group, default=-1) + 1
+    for segments in by_group.values():
+        if len(segments) == 1:
+            continue
+        joined: list[dict[str, Any]] = []
+        for ordinal, stamp in enumerate(sorted(segments)):  # in the order the datums were set
+            segment = segments[stamp]
+            offset = _datum_offset(joined, segment) if joined else 0.0
+            for row in segment:
+                row["datum"] = ordinal
+                if offset is None:
+                    row["group"] = next_group
+                    continue
+                row["reference_raw"], row["datum_offset"] = row["reference"], offset
+                row["reference"] = row["reference"] - offset
+            if offset is None:
+                next_group += 1
+            else:
+                joined += segment
+
+
+def _datum_offset(earlier: list[dict[str, Any]], later: list[dict[str, Any]]) -> float | None:
+    """How much the ``later`` rows' references read above the ``earlier`` ones' (see ``join_datums``)."""
+    def per_point(rows: list[dict[str, Any]]) -> dict[int, float]:
+        values: dict[int, list[float]] = {}
+        for row in rows:
+            values.setdefault(row["point"], []).append(row["reference"] - row["measured"])
+        return {point: float(np.mean(v)) for point, v in values.items()}
+
+    before, after = per_point(earlier), per_point(later)
+    common = sorted(set(before) & set(after))
+    if not common:
+        return None
+    return float(np.mean([after[p] - before[p] for p in common]))
 
 
 def calibration_summary_lines(results: Mapping[str, Any]) -> list[str]:

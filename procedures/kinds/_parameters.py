@@ -21,7 +21,8 @@ def all_axes() -> list[AxisName]:
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    # Unknown keys are typos; NaN and infinity are never a setting (a NaN target passes every `<` check).
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
 class MotionParameters(_Strict):
@@ -34,7 +35,10 @@ class MotionParameters(_Strict):
     frames_per_pose: int = Field(3, ge=1, le=100, description="camera frame triples averaged per pose")
     grab_timeout_s: float = Field(5.0, gt=0, le=120, description="per frame, s")
     retries_per_pose: int = Field(2, ge=0, le=10, description="re-measurements of a pose whose frames fail")
-    max_failed_samples: int = Field(3, ge=0, description="failed poses tolerated before the run fails")
+    retry_backoff_s: float = Field(1.0, ge=0, le=10, description="wait before the first retry of a pose, s; "
+                                   "doubled at each further retry, at most 10 s")
+    max_failed_samples: int = Field(3, ge=0, le=100000, description="failed poses tolerated in one session of "
+                                    "the run (a resume measures the failed ones again) before it fails")
     save_frames: Literal["never", "failed", "always"] = Field("failed", description="which raw frames to keep")
 
 
@@ -46,3 +50,13 @@ class ProcedureBase(_Strict):
     description: str = ""
     hooks: list[HookSpec] = Field(default_factory=list)
     parameters: MotionParameters
+
+
+MAX_RETRY_WAIT_S = 10.0
+
+
+def retry_wait(params: MotionParameters, attempt: int) -> float:
+    """Seconds to wait before retry number ``attempt + 1``: ``retry_backoff_s`` doubled at each
+    retry, at most ``MAX_RETRY_WAIT_S`` (so a glitch of a few seconds is waited out, and a
+    persistent fault fails a pose in bounded time)."""
+    return float(min(params.retry_backoff_s * 2.0**attempt, MAX_RETRY_WAIT_S))

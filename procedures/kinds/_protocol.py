@@ -109,7 +109,22 @@ class Reading:
 
 class StepContext(Protocol):
     """What a kind's ``move`` and ``measure`` may use: the devices, motion at the run's speed,
-    the settle wait, and the frames → pose measurement (retries, saved frames, compensation)."""
+    the settle wait, and the frames → pose measurement (retries, saved frames, compensation).
+
+    ``session`` is the kind's memory for one session of the run (one ``execute()``): empty when a
+    run starts or resumes, so whatever a kind keeps there (an interferometer datum, say) is known
+    to be valid only for steps measured by this process since then.
+    """
+
+    session: dict[str, Any]
+
+    def wait(self, seconds: float) -> None:
+        """Sleep (an abort cuts it short)."""
+        ...
+
+    def log(self, kind: str, message: str) -> None:
+        """An event in the run's log (``instrument show``, the report)."""
+        ...
 
     @property
     def robot(self) -> Robot: ...

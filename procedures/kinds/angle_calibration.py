@@ -10,13 +10,20 @@ from collections.abc import Mapping, Sequence
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import Field, model_validator
+from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from procedures._models import StationFile
 from procedures._report_sections import calibration_results_html
 from procedures._science import ANGLE_COMPONENT
 from procedures._store import Sample
-from procedures.kinds._calibration import analyse_calibration, calibration_summary_lines, inclusive_range
+from procedures.kinds._calibration import (
+    analyse_calibration,
+    calibration_summary_lines,
+    check_calibration_size,
+    check_record_path,
+    inclusive_range,
+    line_points,
+)
 from procedures.kinds._parameters import AxisName, MotionParameters, ProcedureBase, all_axes
 from procedures.kinds._protocol import Analysis, AnalysisContext, DeviceRole, Reading, Step, StepContext
 from procedures.kinds._setups import OprOnTable
@@ -30,18 +37,23 @@ class AngleParameters(MotionParameters):
     axes: list[AxisName] = Field(default_factory=all_axes, min_length=1)
     start_deg: float = Field(-1.0, description="first table angle, degrees")
     stop_deg: float = Field(1.0, description="last table angle (inclusive), degrees")
-    step_deg: float = Field(0.25, gt=0, description="spacing, degrees")
-    repeats: int = Field(3, ge=1, le=100)
+    step_deg: float = Field(0.25, gt=0, description="spacing, degrees (at least 5 points per line)")
+    repeats: int = Field(3, ge=1, le=100, description="passes over the angles per group (at least 2 for a new run)")
     groups: int = Field(3, ge=1, le=20)
     group_start_offsets_deg: list[float] = Field(
         default_factory=_paper_group_offsets, description="per group, offset of all angles, degrees"
     )
     table_speed_deg_s: float = Field(5.0, gt=0, le=360, description="rotary table speed, °/s")
     home_table: bool = Field(True, description="home the table before the first axis if it is not homed")
-    record_path: str | None = None
+    record_path: str | None = Field(
+        None, description="where to write the calibration record: a path relative to the runs folder, without "
+        "'..' (default: calibration-angle.json in the run's folder)"
+    )
+
+    _record_path = field_validator("record_path")(check_record_path)
 
     @model_validator(mode="after")
-    def _consistent(self) -> AngleParameters:
+    def _consistent(self, info: ValidationInfo) -> AngleParameters:
         if self.stop_deg <= self.start_deg:
             raise ValueError(f"stop_deg ({self.stop_deg}) must be above start_deg ({self.start_deg})")
         if len(self.group_start_offsets_deg) != self.groups:
@@ -49,6 +61,8 @@ class AngleParameters(MotionParameters):
                              f"{len(self.group_start_offsets_deg)} entries: expected one offset per group")
         if len(set(self.axes)) != len(self.axes):
             raise ValueError(f"axes repeat an axis: {self.axes}")
+        check_calibration_size(line_points(self.start_deg, self.stop_deg, self.step_deg),
+                               len(self.axes) * self.groups, self.repeats, "step_deg", info)
         return self
 
 

@@ -2,26 +2,60 @@
 interferometer, aligned to that axis and zeroed at each group's first point, is the reference.
 
 Writes a calibration record with one compensation curve per axis (components x, y, z).
+
+**The datum.** A reading means something only relative to the datum set by ``zero()`` at the
+group's first point, and the interferometer loses it whenever its beam breaks or the head is
+re-aimed (which every resume does). So a datum is trusted only within the session that set it
+(``ctx.session``). A step whose group has no datum in this session — a resumed run, a failed pose
+measured again, or a ``DatumLost``/``BeamInterrupted`` while reading — **re-establishes** it: the
+robot returns to the group's first point, the interferometer is zeroed there, the robot goes back
+to the step. Every sample records its datum (``reference.datum_set_at``, ``datum_reestablished``)
+and the run log says when one was re-established. A ``FeedGap`` or a lost feed connection (the
+driver reconnects by itself) is read again after a back-off: the head keeps its count meanwhile, and
+the driver says ``DatumLost`` if it did not. The robot never returns to a point exactly
+(repeatability ~10 µm), so each datum is its own offset: the analysis treats the samples of each
+datum as their own calibration group, whose offset the group alignment estimates.
 """
 
 from __future__ import annotations
 
+import time
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import Field, model_validator
+from pydantic import Field, ValidationInfo, field_validator, model_validator
 
+from drivers import DeviceConnectionError
+from drivers.interferometer import BeamInterrupted, FeedGap
 from procedures._geometry import translated_in_frame
 from procedures._models import StationFile, Vec3
 from procedures._report_sections import calibration_results_html
 from procedures._store import Sample
-from procedures.kinds._calibration import analyse_calibration, calibration_summary_lines, inclusive_range
-from procedures.kinds._parameters import AxisName, MotionParameters, ProcedureBase, all_axes
+from procedures.kinds._calibration import (
+    analyse_calibration,
+    calibration_summary_lines,
+    check_calibration_size,
+    check_record_path,
+    inclusive_range,
+    line_points,
+)
+from procedures.kinds._parameters import AxisName, MotionParameters, ProcedureBase, all_axes, retry_wait
 from procedures.kinds._protocol import Analysis, AnalysisContext, DeviceRole, Reading, Step, StepContext
 from procedures.kinds._setups import InterferometerAligned
 
 AXIS_INDEX = {"x": 0, "y": 1, "z": 2}
+READ_ATTEMPTS = 3  # interferometer readings per step (a lost datum or a feed gap in between is repaired)
+ZERO_ATTEMPTS = 3  # zero() attempts while the beam is still broken
+
+
+@dataclass(frozen=True)
+class Datum:
+    """The interferometer's datum of one group, set in this session (``set_at``: host time, s)."""
+
+    set_at: float
+    reestablished: bool
 
 
 def _paper_group_offsets() -> list[list[float]]:
@@ -32,8 +66,8 @@ class DisplacementParameters(MotionParameters):
     axes: list[AxisName] = Field(default_factory=all_axes, min_length=1)
     start_mm: float = Field(0.0, description="first calibration point along the axis, mm")
     stop_mm: float = Field(70.0, description="last calibration point (inclusive), mm")
-    step_mm: float = Field(5.0, gt=0, description="spacing of the points, mm")
-    repeats: int = Field(3, ge=1, le=100, description="passes over the points per group")
+    step_mm: float = Field(5.0, gt=0, description="spacing of the points, mm (at least 5 points per line)")
+    repeats: int = Field(3, ge=1, le=100, description="passes over the points per group (at least 2 for a new run)")
     groups: int = Field(3, ge=1, le=20, description="groups, each from its own start pose")
     group_start_offsets_mm: list[Vec3] = Field(
         default_factory=_paper_group_offsets,
@@ -41,11 +75,14 @@ class DisplacementParameters(MotionParameters):
     )
     interferometer_average_s: float = Field(0.5, gt=0, le=60, description="averaging window, s")
     record_path: str | None = Field(
-        None, description="where to write the calibration record (default: in the run folder)"
+        None, description="where to write the calibration record: a path relative to the runs folder, without "
+        "'..' (default: calibration-displacement.json in the run's folder)"
     )
 
+    _record_path = field_validator("record_path")(check_record_path)
+
     @model_validator(mode="after")
-    def _consistent(self) -> DisplacementParameters:
+    def _consistent(self, info: ValidationInfo) -> DisplacementParameters:
         if self.stop_mm <= self.start_mm:
             raise ValueError(f"stop_mm ({self.stop_mm}) must be above start_mm ({self.start_mm})")
         if len(self.group_start_offsets_mm) != self.groups:
@@ -53,6 +90,8 @@ class DisplacementParameters(MotionParameters):
                              f"{len(self.group_start_offsets_mm)} entries: expected one offset per group")
         if len(set(self.axes)) != len(self.axes):
             raise ValueError(f"axes repeat an axis: {self.axes}")
+        check_calibration_size(line_points(self.start_mm, self.stop_mm, self.step_mm), len(self.axes) * self.groups,
+                               self.repeats, "step_mm", info)
         return self
 
 
@@ -102,15 +141,70 @@ class DisplacementCalibrationKind:
 
     def measure(self, step: Step, params: DisplacementParameters, ctx: StepContext) -> Reading:
         ctx.settle()
-        interferometer = ctx.interferometer
-        if step.meta.get("zero_interferometer"):
-            interferometer.zero()
+        datum = self._datum(step, params, ctx)
         duration = params.interferometer_average_s
-        reading = float(interferometer.average(duration, timeout=duration + 10.0))
+        for attempt in range(READ_ATTEMPTS):
+            try:
+                reading = float(ctx.interferometer.average(duration, timeout=duration + 10.0))
+                break
+            except BeamInterrupted as exc:  # DatumLost too: the count is gone, so is the datum
+                if attempt == READ_ATTEMPTS - 1:
+                    raise
+                ctx.log("datum_lost", f"{step.key}: {exc}")
+                ctx.wait(retry_wait(params, attempt))
+                datum = self._reestablish(step, params, ctx, why=f"the datum was lost ({exc.cause})")
+            except (FeedGap, DeviceConnectionError) as exc:
+                # Samples missing from the window, or the feed's connection down (the driver reconnects
+                # by itself): the head keeps counting, so the datum stands (a DatumLost would say otherwise).
+                if attempt == READ_ATTEMPTS - 1:
+                    raise
+                ctx.log("feed_gap", f"{step.key}: {exc}; reading again")
+                ctx.wait(retry_wait(params, attempt))
         # The reference is where the group's line starts (nominal) plus the displacement since its zero.
         reference = {"interferometer_m": reading, "value": step.meta["group_start"] + reading,
-                     "robot_tcp_pose": [float(v) for v in ctx.robot.tcp_pose()]}
+                     "robot_tcp_pose": [float(v) for v in ctx.robot.tcp_pose()],
+                     "datum_set_at": datum.set_at, "datum_reestablished": datum.reestablished}
         return Reading(pose=ctx.measure_pose(step), reference=reference)
+
+    def _datum(self, step: Step, params: DisplacementParameters, ctx: StepContext) -> Datum:
+        """The datum of the step's group in this session: set here at the group's first point, kept
+        from an earlier step of this session, or re-established (see the module docstring)."""
+        datums: dict[tuple[str, int], Datum] = ctx.session.setdefault("datums", {})
+        key = (step.meta["axis"], step.meta["group"])
+        if step.meta.get("zero_interferometer"):
+            datums[key] = Datum(self._zero(params, ctx), reestablished=False)
+        elif key not in datums:
+            return self._reestablish(step, params, ctx, why="no datum in this session (a resumed run or a pose "
+                                                            "measured again)")
+        return datums[key]
+
+    def _reestablish(self, step: Step, params: DisplacementParameters, ctx: StepContext, *, why: str) -> Datum:
+        """Back to the group's first point, zero there, back to the step (settled each time)."""
+        along = np.zeros(3)
+        along[AXIS_INDEX[step.meta["axis"]]] = step.meta["group_start"] - step.meta["nominal"]
+        # Every pose of a line has the reference orientation, so this lands on the group's first point.
+        ctx.move_robot(translated_in_frame(step.robot_target(), along).tolist())
+        ctx.settle()
+        datum = Datum(self._zero(params, ctx), reestablished=True)
+        ctx.session.setdefault("datums", {})[(step.meta["axis"], step.meta["group"])] = datum
+        ctx.log("datum", f"{step.meta['axis']} group {step.meta['group']}: datum re-established at the group's "
+                         f"first point before {step.key}: {why}")
+        ctx.move_robot(step.robot_target())
+        ctx.settle()
+        return datum
+
+    @staticmethod
+    def _zero(params: DisplacementParameters, ctx: StepContext) -> float:
+        """``zero()``, retried while the beam is still broken; returns when the datum was set (host time)."""
+        for attempt in range(ZERO_ATTEMPTS):
+            try:
+                ctx.interferometer.zero()
+                return time.time()
+            except BeamInterrupted:
+                if attempt == ZERO_ATTEMPTS - 1:
+                    raise
+                ctx.wait(retry_wait(params, attempt))
+        raise AssertionError("unreachable")
 
     def analyse(self, samples: Sequence[Sample], params: DisplacementParameters, ctx: AnalysisContext) -> Analysis:
         return analyse_calibration(samples, ctx, kind="displacement", component_of_axis={a: a for a in "xyz"},

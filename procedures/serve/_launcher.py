@@ -24,7 +24,7 @@ from typing import Any
 
 import yaml
 
-from procedures._errors import ConfigError
+from procedures._errors import ConfigError, RunLocked, StateConflict
 from procedures._loading import load_procedure, resolve_procedure_path
 from procedures._run_state import RunState
 from procedures._store import RunStore
@@ -225,8 +225,21 @@ def _store_aborted(runs_dir: Path, run_id: str, reason: str) -> None:
     """Store ABORTED for a run left RUNNING, QUEUED or PAUSED by a process that is gone."""
     with RunStore(runs_dir) as store:
         run = store.get_run(run_id)
-        if not RunState(run["state"]).ended:
-            store.set_state(run["id"], RunState.ABORTED, reason=reason)
+        state = RunState(run["state"])
+        if state.ended:
+            return
+        # Take the run's lease first: a live process still holding it (a resume started meanwhile)
+        # keeps its run; a dead one's lease is stale and taken over. Then compare-and-set.
+        try:
+            lease = store.acquire_lease(run["id"])
+        except RunLocked:
+            return
+        try:
+            store.set_state(run["id"], RunState.ABORTED, reason=reason, expected=state, lease=lease)
+        except StateConflict:
+            pass  # the state moved on under us: whoever moved it stored the truth
+        finally:
+            store.release_lease(lease)
 
 
 def _last_line(path: Path) -> str:

@@ -1,6 +1,10 @@
 """The head's firmware: a 1 kHz sample clock that reads the head, frames the samples, answers
 commands and takes faults from the ``FaultPlan``, sending everything to its transports.
 
+Every ``status_rate`` tick the clock thread asks the environmental unit for the air and sets the
+head's refraction ratio; every ``environment_rate`` tick it sends the unit's two frames (air, then
+material) with one cycle counter.
+
 Commands received by a transport are queued and executed by the clock thread just before the next
 sample, and the reply is sent before that sample: every displacement frame after a datum reply is
 relative to the new datum.
@@ -40,6 +44,7 @@ from sim_devices.faults import FaultKind, FaultPlan
 from sim_devices.interferometer import _frames
 from sim_devices.interferometer._bus import CanBusTiming
 from sim_devices.interferometer._config import InterferometerTwinConfig
+from sim_devices.interferometer._environment import EnvironmentUnit
 from sim_devices.interferometer._head import InterferometerHead
 
 FEED_FAULTS = (FaultKind.BEAM_BREAK, FaultKind.STALL, FaultKind.DROP_REPLY, FaultKind.BAD_CRC,
@@ -57,9 +62,10 @@ class Transport(Protocol):
 
 
 class InterferometerDevice:
-    def __init__(self, head: InterferometerHead, config: InterferometerTwinConfig, faults: FaultPlan,
-                 junk_rng: np.random.Generator, timing_rng: np.random.Generator) -> None:
+    def __init__(self, head: InterferometerHead, environment: EnvironmentUnit, config: InterferometerTwinConfig,
+                 faults: FaultPlan, junk_rng: np.random.Generator, timing_rng: np.random.Generator) -> None:
         self.head = head
+        self.environment = environment
         self.config = config
         self.layout = config.layout
         self.faults = faults
@@ -72,12 +78,14 @@ class InterferometerDevice:
         self._thread: threading.Thread | None = None
         self._stats_lock = threading.Lock()
         self.stats = dict.fromkeys(("produced", "sent", "dropped", "bad_crc", "garbage", "late_skipped",
-                                    "stalled_ticks", "commands", "disconnects", "delays"), 0)
+                                    "stalled_ticks", "commands", "disconnects", "delays",
+                                    "environment_cycles"), 0)
         self._drop_frames = 0
         self._bad_crc_frames = 0
         self._stall_until = 0.0
         self._counter = 0
         self._heartbeat = 0
+        self._environment_cycle = 0
 
     # ------------------------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -99,6 +107,7 @@ class InterferometerDevice:
     def _run(self) -> None:
         period = 1.0 / self.layout.sample_rate
         status_every = max(1, round(self.layout.sample_rate / self.layout.status_rate))
+        environment_every = max(1, round(self.layout.sample_rate / self.layout.environment_rate))
         origin_mono = time.monotonic()
         tick = 0
         while not self._stop.is_set():
@@ -119,9 +128,13 @@ class InterferometerDevice:
                 self._count("stalled_ticks")
                 tick += 1
                 continue
+            if tick % status_every == 0:
+                self.head.refraction_ratio = self.environment.refraction_ratio(self.environment.conditions())
             self._sample(now)
             if tick % status_every == 0:
                 self._send_status(now)
+            if tick % environment_every == 0:
+                self._send_environment()
             tick += 1
 
     def _sample(self, now: float) -> None:
@@ -159,6 +172,17 @@ class InterferometerDevice:
                                     self.head.datum_generation, self._heartbeat)
         self._heartbeat = (self._heartbeat + 1) & 0xFF
         self._broadcast(self.layout.status_id, data)
+
+    def _send_environment(self) -> None:
+        unit = self.environment
+        readings, faulty = unit.read(unit.conditions())
+        materials = [readings[name] for name in unit.fitted if name.startswith("material")]
+        for can_id, data in _frames.environment_frames(
+                self.layout.environment_air_id, self.layout.environment_material_id, self._environment_cycle,
+                readings["air_temperature"], readings["pressure"], readings["humidity"], materials, faulty):
+            self._broadcast(can_id, data)
+        self._environment_cycle = (self._environment_cycle + 1) & 0x0F
+        self._count("environment_cycles")
 
     def _execute_commands(self) -> None:
         while True:

@@ -67,3 +67,45 @@ def parse_command(can_id: int, data: bytes) -> tuple[int, int] | None:
     if len(data) != 8 or seal(can_id, bytes(data[:7]))[7] != data[7]:
         return None
     return data[0], data[1]
+
+
+# Environmental unit (docs/interferometer.md): temperatures in mK above 0 °C, pressure in Pa above
+# 60 kPa, humidity in 0.01 % RH, all uint16 little-endian; 0xFFFF where there is no reading (a sensor
+# not fitted, faulty or out of its range: the last two also set the sensor's fault bit).
+NO_READING = 0xFFFF
+PRESSURE_BASE_PA = 60_000
+
+
+def _field(value: float | None, scale: float, base: float = 0.0) -> int | None:
+    """The uint16 for ``value`` (None: no reading; outside the field: None too)."""
+    if value is None:
+        return None
+    code = round((value - base) * scale)
+    return code if 0 <= code < NO_READING else None
+
+
+def environment_frames(air_id: int, material_id: int, cycle: int, air_temperature_c: float | None,
+                       pressure_pa: float | None, humidity_percent: float | None,
+                       materials_c: list[float | None], faulty: set[str]) -> list[tuple[int, bytes]]:
+    """The air frame and the material frame of one measuring cycle (``cycle`` mod 16 in both).
+
+    ``materials_c`` has one entry per fitted sensor (up to three); a sensor named in ``faulty``
+    (``air_temperature``, ``pressure``, ``humidity``, ``material1``..``material3``) reports a fault.
+    """
+    def encode(values: list[tuple[str, float | None, float, float]]) -> tuple[bytes, int]:
+        body, faults = b"", 0
+        for bit, (name, value, scale, base) in enumerate(values):
+            code = None if name in faulty else _field(value, scale, base)
+            if code is None and (value is not None or name in faulty):
+                faults |= 1 << bit  # fitted but no good reading
+            body += struct.pack("<H", NO_READING if code is None else code)
+        return body, faults
+
+    counter = (cycle & 0x0F) << 4
+    air, air_faults = encode([("air_temperature", air_temperature_c, 1000.0, 0.0),
+                              ("pressure", pressure_pa, 1.0, PRESSURE_BASE_PA),
+                              ("humidity", humidity_percent, 100.0, 0.0)])
+    fitted = list(materials_c) + [None] * (3 - len(materials_c))
+    material, material_faults = encode([(f"material{i + 1}", value, 1000.0, 0.0) for i, value in enumerate(fitted)])
+    return [(air_id, seal(air_id, air + bytes([counter | air_faults]))),
+            (material_id, seal(material_id, material + bytes([counter | material_faults])))]

@@ -3,13 +3,17 @@
 The retroreflector sits at the OPR origin. The head is aimed along one axis of M (``align``);
 the true beam direction ``u`` is that axis tilted by a small random misalignment (cosine error),
 and the beam line passes through where the reflector was when the head was aimed. A fringe
-counter measures the optical path change along ``u``::
+counter measures the optical path change along ``u`` and turns it into metres with the nominal
+air's refractive index, so in real air (index n) it reads::
 
-    reading = (1 + scale_error) * (u · p  -  u · p_reference) + noise
+    reading = (1 + scale_error) * (n / n_nominal) * (u · p  -  u · p_reference) + noise
 
-with ``p`` the OPR origin in M. ``p_reference`` is where the datum was set, or, when the count
-has been lost and not re-datumed, where the beam was re-acquired (the head then flags "datum not
-set": the number is a count from nowhere in particular).
+with ``p`` the OPR origin in M and ``refraction_ratio`` = n / n_nominal set by the environmental
+unit (``_environment.py``) as the air drifts. The ratio applies to the whole distance from the
+datum, as if the air had been the same since the datum was set (no dead-path term).
+``p_reference`` is where the datum was set, or, when the count has been lost and not re-datumed,
+where the beam was re-acquired (the head then flags "datum not set": the number is a count from
+nowhere in particular).
 
 Signal strength falls with the reflector's lateral offset from the beam line,
 ``0.95 exp(-(r / lateral_range)^2)``; below ``beam_lost_signal`` (or while a beam-break fault
@@ -52,6 +56,7 @@ class InterferometerHead:
         self._position = world.opr_in_m()[:3, 3].copy()
         world.subscribe(self._on_world)  # cache the OPR position: the feed reads it 1000 times a second
         self.datum_generation = 0
+        self.refraction_ratio = 1.0  # n(air) / n(nominal), kept up to date by the environmental unit
         self._blocked_until = -np.inf  # monotonic time until which a beam-break fault blocks the beam
         self.align(config.axis)
 
@@ -109,7 +114,7 @@ class InterferometerHead:
             self._beam_was_ok = beam_ok
             signal = self._signal_locked() if now_monotonic >= self._blocked_until else 0.0
             noise = float(self._noise_rng.normal(0.0, self.config.noise_std)) if self.config.noise_std else 0.0
-            displacement = (1.0 + self.scale_error) * (along - self._reference) + noise
+            displacement = (1.0 + self.scale_error) * self.refraction_ratio * (along - self._reference) + noise
             return HeadReading(displacement if beam_ok else 0.0, beam_ok, self.datum_set and beam_ok, signal)
 
     def status(self, now_monotonic: float) -> tuple[bool, bool, float]:
@@ -129,6 +134,7 @@ class InterferometerHead:
                 "beam_origin": self.beam_origin.tolist(),
                 "misalignment": float(np.arccos(np.clip(self.beam_direction[AXES[self.axis]], -1.0, 1.0))),
                 "scale_error": self.scale_error,
+                "refraction_ratio": self.refraction_ratio,
                 "datum_set": self.datum_set,
                 "datum_generation": self.datum_generation,
                 "reference_along_beam": self._reference,

@@ -10,8 +10,9 @@ import numpy as np
 
 from sim_devices.control import dispatch
 from sim_devices.faults import FaultKind, FaultPlan
-from sim_devices.interferometer._config import InterferometerTwinConfig
+from sim_devices.interferometer._config import FeedLayout, InterferometerTwinConfig
 from sim_devices.interferometer._device import InterferometerDevice
+from sim_devices.interferometer._environment import EnvironmentUnit
 from sim_devices.interferometer._head import InterferometerHead
 from sim_devices.interferometer._slcan import SlcanPort
 from sim_devices.interferometer._socketcand import SocketcandServer
@@ -35,7 +36,8 @@ class InterferometerTwin:
 
     ``control(command, **kw)``: ``align`` (axis), ``arm`` (kind, count=1, **params), ``clear``
     (kinds=[] → all), ``truth``, ``stats``, ``fired``, ``endpoints``, ``station_entry``
-    (transport="socketcand"). ``faults`` is the twin's ``FaultPlan`` for in-process use.
+    (transport="socketcand"), ``environment`` (the true air and the environmental unit's state),
+    ``sensor_fault`` (sensor, faulty=True). ``faults`` is the twin's ``FaultPlan`` for in-process use.
     """
 
     def __init__(self, world: World, config: Mapping[str, Any] | InterferometerTwinConfig | None = None) -> None:
@@ -43,6 +45,7 @@ class InterferometerTwin:
         self.config = InterferometerTwinConfig.from_dict(config)
         self.faults = FaultPlan()
         self.head: InterferometerHead | None = None
+        self.environment_unit: EnvironmentUnit | None = None
         self.device: InterferometerDevice | None = None
         self._socketcand: SocketcandServer | None = None
         self._slcan: SlcanPort | None = None
@@ -53,7 +56,13 @@ class InterferometerTwin:
         config = self.config
         try:
             self.head = InterferometerHead(self.world, config)
-            self.device = InterferometerDevice(self.head, config, self.faults, self.world.rng("interferometer junk"),
+            self.environment_unit = EnvironmentUnit(self.world, config)
+            self.head.refraction_ratio = self.environment_unit.refraction_ratio(self.environment_unit.conditions())
+            # The air is a function of time alone: its origin and the sensors' offsets make it recomputable.
+            self.world.truth.record("interferometer_environment", time=self.world.clock(),
+                                    **self.environment_unit.truth())
+            self.device = InterferometerDevice(self.head, self.environment_unit, config, self.faults,
+                                               self.world.rng("interferometer junk"),
                                                self.world.rng("interferometer bus timing"))
             self.endpoints = {"layout": config.layout.to_dict()}
             if config.socketcand:
@@ -80,7 +89,7 @@ class InterferometerTwin:
         self._socketcand = self._slcan = None
         if self.head is not None:
             self.head.close()
-        self.device = self.head = None
+        self.device = self.head = self.environment_unit = None
 
     def __enter__(self) -> InterferometerTwin:
         self.start()
@@ -98,8 +107,20 @@ class InterferometerTwin:
         return truth
 
     def truth(self) -> dict[str, Any]:
+        """The head's truth (beam, scale error, refraction ratio, datum, true displacement)."""
         head, _ = self._running()
         return head.truth()
+
+    def environment(self) -> dict[str, Any]:
+        """The true air now (``air``: °C, Pa, % RH, ppm, material °C), both refractive indices and
+        their ratio, the ambient model's time ``origin`` on the world clock, the fitted sensors, their
+        calibration offsets (°C, Pa, % RH) and the sensors reporting a fault."""
+        return self._environment_unit().truth()
+
+    def sensor_fault(self, sensor: str, faulty: bool = True) -> list[str]:
+        """Make an environmental sensor (``air_temperature``, ``pressure``, ``humidity``,
+        ``material1``..``material3`` if fitted) report a fault, or stop; returns those that do."""
+        return self._environment_unit().set_fault(sensor, bool(faulty))
 
     def arm(self, kind: FaultKind | str, count: int = 1, **params: Any) -> list[str]:
         """Arm a feed fault (see ``_device.py`` for the kinds and their params); returns what is armed."""
@@ -124,12 +145,23 @@ class InterferometerTwin:
         return stats
 
     def station_entry(self, transport: str = "socketcand") -> dict[str, Any]:
-        """The ``devices.interferometer`` entry of a station file for this twin."""
+        """The ``devices.interferometer`` entry of a station file for this twin (with the head's
+        ``optics``: its vacuum wavelength and the nominal air it computes with, in SI)."""
         if transport == "socketcand" and "socketcand" in self.endpoints:
-            return {"adapter": "socketcand", **self.endpoints["socketcand"]}
-        if transport == "slcan" and "slcan" in self.endpoints:
-            return {"adapter": "slcan", "port": self.endpoints["slcan"]["port"]}
-        raise ValueError(f"interferometer twin: transport {transport!r} is not running")
+            entry = {"adapter": "socketcand", **self.endpoints["socketcand"]}
+        elif transport == "slcan" and "slcan" in self.endpoints:
+            entry = {"adapter": "slcan", "port": self.endpoints["slcan"]["port"]}
+        else:
+            raise ValueError(f"interferometer twin: transport {transport!r} is not running")
+        config = self.config
+        entry["optics"] = {"vacuum_wavelength": config.vacuum_wavelength,
+                           "nominal_air_temperature": config.nominal_air_temperature_c + 273.15,
+                           "nominal_pressure": config.nominal_pressure_pa,
+                           "nominal_relative_humidity": config.nominal_relative_humidity_percent / 100.0,
+                           "nominal_co2": config.nominal_co2_ppm}
+        if config.layout != FeedLayout():
+            entry["layout"] = config.layout.to_dict()
+        return entry
 
     def control(self, command: str, /, **kwargs: Any) -> Any:
         """The host API for ``TwinProcess``: each command is the method of that name (``endpoints``:
@@ -137,8 +169,14 @@ class InterferometerTwin:
         commands: dict[str, Callable[..., Any]] = {
             "align": self.align, "arm": self.arm, "clear": self.clear, "fired": self.fired, "truth": self.truth,
             "stats": self.stats, "endpoints": lambda: self.endpoints, "station_entry": self.station_entry,
+            "environment": self.environment, "sensor_fault": self.sensor_fault,
         }
         return dispatch(commands, command, kwargs, "interferometer twin")
+
+    def _environment_unit(self) -> EnvironmentUnit:
+        if self.environment_unit is None:
+            raise RuntimeError("interferometer twin is not running (call start())")
+        return self.environment_unit
 
     def _running(self) -> tuple[InterferometerHead, InterferometerDevice]:
         if self.head is None or self.device is None:
