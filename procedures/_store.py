@@ -338,7 +338,8 @@ class RunStore:
         robot : only runs on the robot with this serial number
         last : only the newest ``last`` of those
         """
-        where, args = [], []
+        where: list[str] = []
+        args: list[Any] = []
         wanted = [RunState(state).value for state in states]
         if wanted:
             where.append(f"r.state IN ({', '.join('?' * len(wanted))})")

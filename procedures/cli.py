@@ -25,6 +25,7 @@ from pathlib import Path
 from instrument import __version__
 from procedures import (
     _cmd_export,
+    _cmd_history,
     _cmd_locate,
     _cmd_report,
     _cmd_resume,
@@ -38,8 +39,17 @@ from procedures import (
 from procedures._errors import ConfigError, RunError
 from procedures._files import InputRefused
 
-COMMANDS = (_cmd_locate, _cmd_sim, _cmd_validate, _cmd_run, _cmd_resume, _cmd_runs, _cmd_show, _cmd_report,
-            _cmd_export, _cmd_serve)
+COMMANDS = (_cmd_locate, _cmd_sim, _cmd_validate, _cmd_run, _cmd_resume, _cmd_runs, _cmd_show, _cmd_history,
+            _cmd_report, _cmd_export, _cmd_serve)
+EXIT_CODES_HELP = """exit codes:
+  0    done (run/resume: the run FINISHED)
+  1    failed: bad input, no such run or store, or the run FAILED (one line on stderr, never a traceback)
+  2    run/resume: the run was ABORTED (second Ctrl-C, SIGTERM, SIGHUP); any command: bad arguments (usage)
+  3    run/resume: the run was left PAUSED (continue it with: instrument resume RUN)
+  130  interrupted before a run started
+
+environment: INSTRUMENT_RUNS (runs folder, default ./runs), INSTRUMENT_STORE (postgresql:// URL of a shared
+run store; default: the runs folder's runs.sqlite)"""
 ERROR_LOG = "instrument-errors.log"
 
 
@@ -47,6 +57,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="instrument",
         description="Robot pose repeatability (ISO 9283) with a cross-laser optical pose reference.",
+        epilog=EXIT_CODES_HELP, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--version", action="version", version=f"instrument {__version__}")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")

@@ -52,7 +52,8 @@ def test_stored_runs_are_listed_shown_reported_and_exported(runs_dir, tmp_path, 
     runs = _stored(runs_dir)
     assert main(["runs", "--runs-dir", str(runs_dir)]) == 0
     listing = capsys.readouterr().out.splitlines()
-    assert [line.split()[0] for line in listing] == [r["id"][:12] for r in runs]
+    assert listing[0].split()[0] == "RUN"  # the header
+    assert [line.split()[0] for line in listing[1:]] == [r["id"][:12] for r in runs]
     for run in runs:
         assert main(["show", run["id"], "--runs-dir", str(runs_dir)]) == 0
         shown = capsys.readouterr().out
