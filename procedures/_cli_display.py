@@ -181,16 +181,18 @@ class Display:
             self._live.refresh()
 
     def _title(self, event: dict[str, Any]) -> str:
+        """Most telling first (a narrow terminal cuts the end): the demo's phase, the plan position, the
+        procedure's phase, the procedure."""
         parts = []
         if self.phase is not None:
             parts.append(f"{self.phase[0]}/{self.phase[1]}")
-        if event.get("procedure"):
-            parts.append(str(event["procedure"]))
-        if (event.get("phases") or 0) > 1:
-            parts.append(f"{event.get('phase')} {event.get('phase_index')}/{event.get('phases')}")
         where = where_text(event)
         if where:
             parts.append(where)
+        if (event.get("phases") or 0) > 1:
+            parts.append(f"{event.get('phase')} {event.get('phase_index')}/{event.get('phases')}")
+        if event.get("procedure"):
+            parts.append(str(event["procedure"]))
         return " · ".join(parts) or "starting"
 
     def _eta(self, event: dict[str, Any]) -> float | None:
