@@ -186,3 +186,16 @@ def test_a_run_records_the_robot_it_measured(tmp_path, capsys):
     _, run = _drive(tmp_path, _procedure(tmp_path, "iso9283_repeatability", cycles=2), Display("quiet"))
     assert run["robot_serial"] == "20235500123" and run["robot_model"] == "UR5"
     assert RunState(run["state"]) == RunState.FINISHED
+
+
+def test_the_demos_eta_adds_the_runs_still_to_come():
+    from procedures.demo import DemoProgress
+
+    progress = DemoProgress([(100, 3), (50, 3), (20, 1)])
+    progress.display = Display("quiet")
+    progress.display.last_progress = {"pace_s": 0.3, "setup_s": 2.0}
+    assert progress.later_s() == pytest.approx(50 * 0.3 + 3 * 2.0 + 20 * 0.3 + 1 * 2.0)
+    progress.current, progress.overheads = 1, [4.0]
+    assert progress.later_s() == pytest.approx(20 * 0.3 + 1 * 2.0 + 4.0)
+    progress.current = 2
+    assert progress.later_s() == 0.0
