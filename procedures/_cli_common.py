@@ -56,7 +56,7 @@ def add_runs_dir(parser) -> None:
 def add_display(parser) -> None:
     group = parser.add_mutually_exclusive_group()
     group.add_argument("--quiet", action="store_true",
-                       help="print exactly one line at the end: RUN_ID STATE [report path or reason]")
+                       help="print exactly one line at the end: RUN_ID STATE")
     group.add_argument("--jsonl", action="store_true",
                        help="one JSON event per line on stdout (for automation); the last is 'done' with the "
                             "state, reason, key results and report path")
@@ -290,8 +290,7 @@ def drive(engine: RunEngine, args: argparse.Namespace, display: Display | None =
         print(json.dumps({"event": "done", "run_id": engine.run_id, "state": state, "reason": run["reason"],
                           "results": result_summary(run), "report": report}, default=str))
     elif args.quiet:
-        print(f"{engine.run_id} {state}" + (f" {report}" if state == RunState.FINISHED and report else "")
-              + (f" — {reason}" if reason and state != RunState.FINISHED else ""))
+        print(f"{engine.run_id} {state}")  # scripts read these two words: nothing else, ever
     else:
         print(f"run {engine.run_id}: {state} after {_elapsed(time.monotonic() - started)}"
               + (f" — {reason}" if reason else ""))
