@@ -51,6 +51,11 @@ EXIT_CODES_HELP = """exit codes:
 environment: INSTRUMENT_RUNS (runs folder, default ./runs), INSTRUMENT_STORE (postgresql:// URL of a shared
 run store; default: the runs folder's runs.sqlite)"""
 ERROR_LOG = "instrument-errors.log"
+COMMON_HELP = {
+    "run_id": "run id (a unique prefix is enough)",
+    "csv": "one CSV row per sample (SI columns, the unit in each name)",
+    "json": "the run, its samples, superseded samples and events as one JSON document",
+}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -63,6 +68,12 @@ def build_parser() -> argparse.ArgumentParser:
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
     for command in COMMANDS:
         command.register(subparsers)
+    for sub in subparsers.choices.values():  # arguments a command left without a help text get the common one
+        for action in sub._actions:
+            if action.help is None and action.dest in COMMON_HELP:
+                action.help = COMMON_HELP[action.dest]
+        if sub.epilog is None:
+            sub.epilog = "exit codes: 0 done, 1 bad input or no such run (one line on stderr), 2 bad arguments"
     return parser
 
 
