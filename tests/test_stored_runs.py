@@ -11,6 +11,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import math
 import sqlite3
 from pathlib import Path
 
@@ -70,14 +71,22 @@ def test_stored_runs_are_listed_shown_reported_and_exported(runs_dir, tmp_path, 
         assert main(["report", run["id"], "-o", str(html_path), "--runs-dir", str(runs_dir)]) == 0
         assert capsys.readouterr().out.strip() == str(html_path)
         html = html_path.read_text(encoding="utf-8")
-        assert run["id"] in html and f"{run['state']} (" in html
+        assert run["id"] in html and f"{run['state']} (" in html and "id=signoff" in html
         if not results:
             assert "No results: the run has not finished." in html
         elif run["procedure"] == "iso9283_repeatability":
-            rp_l = results["points"]["P1"]["stats"]["rp_l"]
-            assert f"<td>{rp_l * 1e6:.2f}" in html
+            # stored before figure objects, uncertainty and test conditions: the ISO statistics are shown, the
+            # deviations are read off the run, the conditions come from its parameters and station snapshot
+            cycles = run["parameters"]["cycles"]
+            assert f"— {cycles} cycles</h1>" in html and f"{cycles} cycles measured (ISO 9283 asks for 30)" in html
+            assert "read off the run" in html and "stored before the test conditions were recorded" in html
+            for label in results["order"]:
+                stats = results["points"][label]["stats"]
+                assert f"<span class=v>{stats['rp_l'] * 1e6:.2f}</span>" in html
+                assert f"<span class=v>{stats['rp_a'] * 180 * 3600 / math.pi:.2f}</span>" in html  # arc-seconds
+            assert html.count("class=\"circle\"") == 3 * len(results["order"])  # x–y, x–z, y–z with the RP circle
         else:
-            assert results["record_id"] in html and "error against measured value" in html
+            assert results["record_id"] in html and "datum removed" in html and "error before" in html
 
         assert main(["export", run["id"], "--csv", "--runs-dir", str(runs_dir)]) == 0
         rows = list(csv.DictReader(io.StringIO(capsys.readouterr().out)))

@@ -13,12 +13,11 @@ import numpy as np
 from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from procedures._models import StationFile
-from procedures._report_sections import calibration_results_html
+from procedures._report_sections import calibration_results_html, calibration_summary_lines
 from procedures._science import ANGLE_COMPONENT
 from procedures._store import Sample
 from procedures.kinds._calibration import (
     analyse_calibration,
-    calibration_summary_lines,
     check_calibration_size,
     check_record_path,
     inclusive_range,

@@ -31,11 +31,10 @@ from drivers import DeviceConnectionError
 from drivers.interferometer import BeamInterrupted, FeedGap
 from procedures._geometry import translated_in_frame
 from procedures._models import StationFile, Vec3
-from procedures._report_sections import calibration_results_html
+from procedures._report_sections import calibration_results_html, calibration_summary_lines
 from procedures._store import Sample
 from procedures.kinds._calibration import (
     analyse_calibration,
-    calibration_summary_lines,
     check_calibration_size,
     check_record_path,
     inclusive_range,

@@ -86,14 +86,9 @@ class Iso9283RepeatabilityKind:
         return iso_results_html(results)
 
     def summary_lines(self, results: Mapping[str, Any]) -> list[str]:
-        lines = ["point  n    RP_l (µm)  RP_a (°)   RP_b (°)   RP_c (°)   AP_P (µm)"]
-        for label in results["order"]:
-            entry = results["points"][label]
-            s = entry.get("stats")
-            if s:
-                lines.append(f"{label:<5} {entry['n']:>3}  {s['rp_l'] * 1e6:9.2f}  {np.degrees(s['rp_a']):9.5f}  "
-                             f"{np.degrees(s['rp_b']):9.5f}  {np.degrees(s['rp_c']):9.5f}  {s['ap_p'] * 1e6:9.2f}")
-        return lines
+        from procedures._report_sections import iso_summary_lines  # here, not above: the import block is shared
+
+        return iso_summary_lines(results)
 
 
 def _measured(sample: Sample) -> np.ndarray:
