@@ -19,6 +19,7 @@ from procedures.kinds._calibration_results import (
     add_datum_removed_curves,
     before_after,
     evaluation_view,
+    off_axis_slopes,
     reference_vs_truth,
     residual_uncertainties,
 )
@@ -130,9 +131,13 @@ def analyse_calibration(samples: Sequence[Sample], ctx: AnalysisContext, *, kind
     data: dict[str, list[dict[str, Any]]] = {}
     environment: list[dict[str, Any]] = []
     factors: list[float] = []
+    lines: dict[str, list[tuple[Any, list[float]]]] = {}
     for sample in samples:
         if not sample.ok or sample.phase != "calibration" or sample.meta is None or sample.solved is None:
             continue
+        meta = sample.meta
+        lines.setdefault(meta["axis"], []).append(((meta["group"], meta["repeat"], meta.get("approach")),
+                                                   sample.solved["pose"]))
         component = component_of_axis[sample.meta["axis"]]
         index = COMPONENTS.index(component)
         reference = sample.reference or {}
@@ -165,6 +170,7 @@ def analyse_calibration(samples: Sequence[Sample], ctx: AnalysisContext, *, kind
         scale = scale_uncertainty(air_conditions, HENE_WAVELENGTH_M, compensated=bool(factors))
         reference_entry = interferometer_reference(scale, compensated=bool(factors), air=mean_air,
                                                    frames_per_pose=params.frames_per_pose)
+        reference_entry["off_axis"] = off_axis_slopes(lines)
         noise = dict.fromkeys(data, float(reference_entry["reading_noise_m"]))
         scales = dict.fromkeys(data, scale)
     else:
@@ -201,7 +207,7 @@ def analyse_calibration(samples: Sequence[Sample], ctx: AnalysisContext, *, kind
         "evaluation": evaluation_view(fit.summary), "before_after": before_after(curves),
         "residual_uncertainty": residual_uncertainties(curves, data, reference_noise=noise, reference_scale=scales,
                                                        notes=notes),
-        "reference_vs_truth": reference_vs_truth(data),
+        "reference_vs_truth": reference_vs_truth(data), "off_axis": reference_entry.get("off_axis"),
         "test_conditions": {
             "date": local_time(first), "operator": operator_of(params.operator), "software_version": __version__,
             "reference": reference_entry, "environment": air,

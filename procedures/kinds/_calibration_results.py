@@ -144,3 +144,45 @@ def reference_vs_truth(data: Mapping[str, Sequence[Mapping[str, Any]]]) -> dict[
                   for g, v in sorted(residual_by_group.items())}
         out[component] = {"groups": groups, "all": _stat([v for vs in residual_by_group.values() for v in vs])}
     return out or None
+
+
+def off_axis_slopes(lines: Mapping[str, Sequence[tuple[Any, Sequence[float]]]]) -> dict[str, Any] | None:
+    """How much the other components read change along each calibration line (the cross-axis error).
+
+    Along a line the robot moves along one axis k of M; the other components of the OPR's true pose
+    stay put (to within the robot's straightness and angular deviation), so the slope of each other
+    component's measured value against the measured k is the instrument's cross-axis error, which a
+    per-component compensation (a curve of each component's own value) cannot correct. It includes the
+    robot's own deviation along the line: an upper estimate.
+
+    Parameters
+    ----------
+    lines : axis k → [(line key, (6,) solved pose), ...] of every sample along that axis
+
+    Returns
+    -------
+    ``{"slopes": {k: {j: s}}, "spread": {k: {j: std over lines}}, "lines": {k: count}}``: s in m/m for
+    x, y, z and rad/m for a, b, c; None without two points on a line.
+    """
+    components = ("x", "y", "z", "a", "b", "c")
+    slopes: dict[str, dict[str, float]] = {}
+    spread: dict[str, dict[str, float]] = {}
+    counts: dict[str, int] = {}
+    for axis, samples in lines.items():
+        k = components.index(axis)
+        by_line: dict[Any, list[Sequence[float]]] = {}
+        for key, pose in samples:
+            by_line.setdefault(key, []).append(pose)
+        fits = []
+        for poses in by_line.values():
+            array = np.asarray(poses, dtype=float)
+            if len(array) < 2 or np.ptp(array[:, k]) <= 0:
+                continue
+            fits.append([np.polyfit(array[:, k], array[:, j], 1)[0] if j != k else 0.0 for j in range(6)])
+        if not fits:
+            continue
+        fitted = np.asarray(fits)
+        slopes[axis] = {c: float(v) for c, v in zip(components, fitted.mean(axis=0)) if c != axis}
+        spread[axis] = {c: float(v) for c, v in zip(components, fitted.std(axis=0)) if c != axis}
+        counts[axis] = len(fits)
+    return {"slopes": slopes, "spread": spread, "lines": counts} if slopes else None

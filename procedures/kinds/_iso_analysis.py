@@ -16,14 +16,14 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from instrument import __version__
-from instrument.uncertainty import IsoRun, UncertaintyError, iso_uncertainty
+from instrument.uncertainty import CoverageCase, IsoRun, UncertaintyBudget, UncertaintyError, iso_uncertainty
 from procedures._geometry import euler_to_matrix, matrix_to_euler, tcp_in_m, ur_to_matrix
 from procedures._science import COMPONENTS, Compensator
 from procedures._store import Sample
 from procedures.kinds._calibration import RESULTS_VERSION
 from procedures.kinds._conditions import local_time, sessions_of
 from procedures.kinds._environment import environment_summary
-from procedures.kinds._iso_budget import BudgetUnavailable, iso_budget
+from procedures.kinds._iso_budget import BudgetUnavailable, iso_budget, squareness_terms
 from procedures.kinds._iso_conditions import deviations_of, test_conditions
 from procedures.kinds._protocol import AnalysisContext
 
@@ -158,14 +158,25 @@ def analyse_iso(samples: Sequence[Sample], ctx: AnalysisContext, params: IsoPara
         if transform_geometry is not None:
             barycentres = np.array([t[:, :3].mean(axis=0) for t in measured_tools.values()])
             lever = _spread(barycentres, transform_geometry["centre"])
+            transform["lever"] = lever
         try:
-            budget, estimator = iso_budget(
+            budget, estimator, off_axis = iso_budget(
                 infos, applied, frames_per_pose=params.frames_per_pose,
                 per_frame=per_frame if params.frames_per_pose >= 2 else None,
                 transform=None if transform_geometry is None else {**transform_geometry, "lever": lever},
-                run_air_k=run_air)
+                run_air_k=run_air, positions={label: bary[:3].tolist() for label, bary in opr_barycentres.items()},
+                squareness=(params.frame_squareness_urad or 0.0) * 1e-6)
             uncertainty, figures = _evaluate(params, budget, estimator, measured_tools, commanded_tools, true_tools,
                                              ctx.station.frames.tool_in_opr)
+            uncertainty["off_axis"] = off_axis
+            uncertainty["frame_squareness_rad"] = None if params.frame_squareness_urad is None \
+                else params.frame_squareness_urad * 1e-6
+            if off_axis is None:
+                notes.append("the displacement record states no off-axis slopes: the angles' cross-axis error is "
+                             "not in U")
+            if params.frame_squareness_urad is None:
+                notes.append("frame squareness not stated: the position frame's squareness and rotation against "
+                             "the angle frame (not calibrated) are not in U; AP and AD can be off by more than U")
         except (BudgetUnavailable, UncertaintyError) as exc:
             uncertainty = {"evaluated": False, "reason": str(exc)}
             figures = _figures_without_uncertainty(points)
@@ -246,3 +257,28 @@ def figure_without_uncertainty(name: str, stats: Mapping[str, Any], true: Mappin
     return {"value": stats[name], "expanded_uncertainty": None, "coverage_factor": 2,
             "confidence_interval": None if interval is None else list(interval), "true": true.get(name),
             "unit": "m" if name in LINEAR_FIGURES else "rad", "budget": None}
+
+
+def coverage_case(results: Mapping[str, Any], tool_in_opr: Sequence[float], *,
+                  frame_squareness: float | None = None) -> CoverageCase | None:
+    """An ISO run's results (with truth and an evaluated budget) as a ``CoverageCase``, to check U against
+    the truth with ``instrument.uncertainty.coverage_study``; None when the run has no truth or no budget.
+    ``frame_squareness`` (rad): the budget with the squareness terms of that value instead of the run's."""
+    uncertainty = results.get("uncertainty") or {}
+    points = {label: entry for label, entry in (results.get("points") or {}).items() if "true_poses" in entry}
+    if not uncertainty.get("evaluated") or not points or len(points) != len(results.get("points") or {}):
+        return None
+    run = IsoRun(measured={p: e["poses"] for p, e in points.items()},
+                 commanded={p: e["commanded"] for p, e in points.items()},
+                 tool_in_opr=ur_to_matrix(tool_in_opr), truth={p: e["true_poses"] for p, e in points.items()})
+    pairs = tuple((str(a), str(b)) for a, b in uncertainty.get("distance_pairs") or [])
+    budget = UncertaintyBudget.from_dict(uncertainty["budget"])
+    if frame_squareness is not None:
+        opr_in_tool = np.linalg.inv(ur_to_matrix(tool_in_opr))
+        positions = {p: np.mean([(euler_to_matrix(pose) @ opr_in_tool)[:3, 3] for pose in e["poses"]], axis=0)
+                     for p, e in points.items()}
+        transform = results.get("transform") or {}
+        for term in squareness_terms(frame_squareness, positions, float(transform.get("lever") or 0.0),
+                                     bool(transform.get("fitted"))):
+            budget = budget.with_term(term)
+    return CoverageCase(run, budget, distance_pairs=pairs, drift_cycles=uncertainty.get("drift_cycles"))

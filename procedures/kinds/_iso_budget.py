@@ -20,6 +20,13 @@ Which number comes from where (docs/uncertainty.md, "Wiring it into a run", has 
   residual per point) through the rigid fit, not its residual, which holds the robot's own scatter.
 - **environment**: the instrument's thermal scale: aluminium (23e-6 /K) × the air's difference
   from the calibration's (both from the environmental unit; ±1 K when either is unknown).
+- **off-axis angle error**: the angles' error that depends on the position (which a curve of each
+  angle's own value cannot correct), from the displacement calibration's slopes of a, b, c along
+  the x, y, z lines (``_calibration_results.off_axis_slopes``), at the run's points. Carried in U,
+  not corrected: the slopes hold the robot's own angular deviation along a line too.
+- **frame shear, frame rotation**: the position frame's squareness and its rotation against the
+  angle frame, which neither calibration measures; in U only when stated
+  (``frame_squareness_urad``), else the run says it is left out.
 """
 
 from __future__ import annotations
@@ -55,6 +62,7 @@ UNKNOWN_TEMPERATURE_HALF_WIDTH_K = 1.0
 AIR_SENSOR_UNCERTAINTY_K = 0.2 / math.sqrt(3.0)
 MINIMUM_DOF = 3.0
 LINEAR = ("x", "y", "z")
+ANGULAR = ("a", "b", "c")
 
 
 class BudgetUnavailable(Exception):
@@ -198,6 +206,64 @@ def transform_fit_term(noise: BudgetTerm, compensation: BudgetTerm, n_points: in
                       Correlation.RUN, (u_position,) * 3 + (u_angle,) * 3, dof=max(noise.dof, MINIMUM_DOF))
 
 
+def off_axis_error(slopes: Mapping[str, Mapping[str, float]], position: Sequence[float]) -> np.ndarray:
+    """(6,) error of each component at ``position`` (m, in M) from the other axes' slopes."""
+    error = np.zeros(6)
+    for axis, row in slopes.items():
+        k = COMPONENTS.index(axis)
+        for component, slope in row.items():
+            error[COMPONENTS.index(component)] += float(slope) * float(position[k])
+    return error
+
+
+def off_axis_terms(sources: Mapping[str, Mapping[str, Any]], positions: Mapping[str, Sequence[float]]
+                   ) -> tuple[BudgetTerm | None, dict[str, Any] | None]:
+    """The off-axis angle error at the run's points (a point term on a, b, c) and its figures.
+
+    Only the angles: along a calibration line the robot holds its orientation, so the angles' slopes
+    are the instrument's; the positions' slopes also hold the robot's line direction in M, which the
+    calibration cannot know (see ``squareness_terms``). None when the displacement record states no
+    slopes.
+    """
+    off_axis = _reference(sources.get("x"), "laser interferometer").get("off_axis") or {}
+    slopes = {axis: {c: v for c, v in row.items() if c in ANGULAR}
+              for axis, row in (off_axis.get("slopes") or {}).items() if axis in LINEAR}
+    if not any(slopes.values()) or not positions:
+        return None, None
+    labels = list(positions)
+    errors = np.array([off_axis_error(slopes, positions[label]) for label in labels])
+    u = np.concatenate([np.zeros(3), np.sqrt(np.mean(errors[:, 3:] ** 2, axis=0))])
+    term = BudgetTerm("off-axis angle error", "the angles' cross-axis error left by the per-component compensation: "
+                      "the displacement calibration's slopes of a, b, c along the x, y, z lines, at the run's points",
+                      Correlation.POINT, tuple(float(v) for v in u))
+    summary = {"slopes_rad_per_m": slopes,
+               "at_points": {label: dict(zip(ANGULAR, e[3:].tolist())) for label, e in zip(labels, errors)},
+               "standard_uncertainty": dict(zip(COMPONENTS, u.tolist()))}
+    return term, summary
+
+
+def squareness_terms(squareness: float, positions: Mapping[str, Sequence[float]], lever: float,
+                     transform: bool) -> list[BudgetTerm]:
+    """The instrument's position frame against its angle frame (rotation) and its axes' squareness (shear).
+
+    Neither calibration measures them: the displacement calibration scales each axis along the robot's
+    lines, whose direction in M it cannot know, and the angle calibration turns about M's axes at its
+    origin. Given a standard uncertainty ``squareness`` (rad, the station's or the operator's statement),
+    the rotation moves the orientation the transform fit finds (a run term on a, b, c, and on the tool
+    point at ``lever``) and the shear the points' positions (a point term, u = squareness × the points'
+    RMS distance from their centroid).
+    """
+    if squareness <= 0:
+        return []
+    points = np.array([p[:3] for p in positions.values()], dtype=float)
+    spread = float(np.sqrt(np.mean(np.sum((points - points.mean(axis=0)) ** 2, axis=1)))) if len(points) else 0.0
+    source = f"stated frame squareness {squareness:.3g} rad (not calibrated by the per-axis method)"
+    terms = [BudgetTerm("frame shear", source, Correlation.POINT, (squareness * spread,) * 3 + (0.0,) * 3)]
+    position = squareness * lever if transform else 0.0  # the fit's rotation moves the commanded tool point
+    terms.append(BudgetTerm("frame rotation", source, Correlation.RUN, (position,) * 3 + (squareness,) * 3))
+    return terms
+
+
 def environment_scale_term(run_air_k: float | None, calibration_air_k: float | None) -> BudgetTerm:
     """The instrument's thermal scale between its calibration and this run (a relative error)."""
     if run_air_k is None or calibration_air_k is None:
@@ -215,7 +281,8 @@ def environment_scale_term(run_air_k: float | None, calibration_air_k: float | N
 
 def iso_budget(infos: Sequence[Mapping[str, Any]], applied: set[str], *, frames_per_pose: int,
                per_frame: Sequence[Sequence[Sequence[float]]] | None, transform: Mapping[str, Any] | None,
-               run_air_k: float | None) -> tuple[UncertaintyBudget, dict[str, Any]]:
+               run_air_k: float | None, positions: Mapping[str, Sequence[float]], squareness: float = 0.0
+               ) -> tuple[UncertaintyBudget, dict[str, Any], dict[str, Any] | None]:
     """The run's budget and the frame-noise estimator's description.
 
     Parameters
@@ -226,6 +293,12 @@ def iso_budget(infos: Sequence[Mapping[str, Any]], applied: set[str], *, frames_
     per_frame : (n_poses, k, 6) per-frame OPR poses of the run, for the cross-check, or None
     transform : ``{"points": n, "spread": ρ, "lever": L}`` of the transform step, or None
     run_air_k : the run's mean air temperature, K, or None
+    positions : point → the OPR's measured position (m, in M), for the off-axis error
+    squareness : the stated frame squareness (rad, standard uncertainty); 0: not stated, not in U
+
+    Returns
+    -------
+    The budget, the frame-noise estimator's description, and the off-axis error's (or None).
 
     Raises
     ------
@@ -236,10 +309,15 @@ def iso_budget(infos: Sequence[Mapping[str, Any]], applied: set[str], *, frames_
     noise, estimator = frame_noise_term(sources, frames_per_pose, per_frame)
     compensation = compensation_residual_term(sources, applied)
     terms = [noise, compensation, *reference_terms(sources)]
+    off_axis, off_axis_summary = off_axis_terms(sources, positions)
+    if off_axis is not None:
+        terms.append(off_axis)
     if transform is not None:
         terms.append(transform_fit_term(noise, compensation, int(transform["points"]), float(transform["spread"]),
                                         float(transform["lever"])))
+    terms += squareness_terms(squareness, positions, float((transform or {}).get("lever") or 0.0),
+                              transform is not None)
     calibration_c = (sources.get("x") or {}).get("temperature_c")
     calibration_k = None if calibration_c is None else float(calibration_c) + 273.15
     terms.append(environment_scale_term(run_air_k, calibration_k))
-    return UncertaintyBudget(tuple(terms)), estimator
+    return UncertaintyBudget(tuple(terms)), estimator, off_axis_summary

@@ -141,6 +141,10 @@ def deviations_of(params: IsoParameters, conditions: Mapping[str, Any], points: 
                               f"envelope holds {cube['largest_edge_m'] * 1e3:.4g} mm (ISO 9283 tests the largest cube "
                               "of the working space)", edge_m=cube["edge_m"], largest_edge_m=cube["largest_edge_m"]))
     if uncertainty.get("evaluated"):
+        if uncertainty.get("frame_squareness_rad") is None:
+            out.append(_deviation("frame_squareness_not_stated", "warning", "the instrument's position frame against "
+                                  "its angle frame is not calibrated and not stated (frame_squareness_urad): U of AP "
+                                  "and AD leaves it out"))
         failing = uncertainty.get("above_25_percent") or []
         if failing:
             names = sorted({f[2] for f in failing})

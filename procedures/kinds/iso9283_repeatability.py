@@ -58,6 +58,10 @@ class IsoParameters(MotionParameters):
                                    "uncertainty (0: not evaluated)")
     drift_cycles: int | None = Field(None, ge=2, le=5000, description="cycles at the start and at the end "
                                      "compared for the drift figures (default: a third of the cycles)")
+    frame_squareness_urad: float | None = Field(
+        None, ge=0, le=100000, description="standard uncertainty of the instrument's position frame against its "
+        "angle frame (squareness and rotation), µrad: neither calibration measures it; stated here it enters the "
+        "uncertainty of AP and AD, null leaves it out (and the results say so)")
 
 
 class Iso9283Repeatability(ProcedureBase):
