@@ -10,7 +10,8 @@ the best batch is the closest to an idle core on a shared machine):
 
 1. **tracking**: ``PoseTracker`` on three 2448 × 2048 8-bit frames per trigger (a slow motion,
    the crosses moving a few pixels per frame), every cross tracked from the previous frame's:
-   poses per second (target ≥ 500);
+   poses per second (target ≥ 500), and the minor page faults per trigger (memory the process
+   had to get back from the system; see ``instrument.vision.VisionWorkspace``);
 2. **no prior**: the same frames, each cross found by the full search, the pose solved from the
    closed form: poses per second (target ≥ 100);
 3. ``solve_pose`` per solve from three ``CrossMeasurement``s, from the closed form and warm-started
@@ -32,6 +33,7 @@ import os
 os.environ["OMP_NUM_THREADS"] = "1"  # before numpy loads its BLAS
 
 import argparse
+import resource
 import sys
 import time
 from pathlib import Path
@@ -124,9 +126,11 @@ def tracking_rate(geometry, frames, count, per_batch):
             raise RuntimeError(f"trigger {index} dropped: {sample.reason}")
 
     one()  # the first trigger runs the full search; the rest track
+    faults = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
     best, median = batches(one, count, per_batch)
+    faults = (resource.getrusage(resource.RUSAGE_SELF).ru_minflt - faults) / (count * per_batch)
     stream = tracker.stream()
-    return best, median, int(stream.tracked[1:].min()), tracker.fallbacks
+    return best, median, int(stream.tracked[1:].min()), tracker.fallbacks, faults
 
 
 def no_prior_rate(geometry, frames, count, per_batch):
@@ -192,12 +196,13 @@ def main(argv=None):
           f"OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS')}")
     rows = []
 
-    best, median, least_tracked, fallbacks = tracking_rate(geometry, frames, count, per_batch)
+    best, median, least_tracked, fallbacks, faults = tracking_rate(geometry, frames, count, per_batch)
     rows.append((f"tracking: poses/s, 3 × {WIDTH}×{HEIGHT} (best / median batch; ms per triple)",
                  f"{1 / best:.0f} / {1 / median:.0f}; {best * 1e3:.2f} / {median * 1e3:.2f}",
                  f"≥ {TARGETS['tracking']:.0f}/s", 1 / best >= TARGETS["tracking"]))
     rows.append(("tracking: crosses tracked per triple (least) / fallbacks", f"{least_tracked} / {fallbacks}", "3 / 0",
                  least_tracked == 3 and fallbacks == 0))
+    rows.append(("tracking: minor page faults per triple", f"{faults:.1f}", "", True))
     best, median = no_prior_rate(geometry, frames, max(count // 2, 3), max(per_batch // 2, 5))
     rows.append(("no prior: poses/s (best / median batch; ms per triple)",
                  f"{1 / best:.0f} / {1 / median:.0f}; {best * 1e3:.2f} / {median * 1e3:.2f}",

@@ -7,24 +7,67 @@ from a factory, starts it, sends back its endpoints, then serves control calls u
 
 A host object has ``start() -> dict`` (endpoints), ``stop() -> None`` and
 ``control(command: str, /, **kwargs) -> Any`` (the twin's control API: arm faults, read truth ...).
+
+No child outlives its parent: the child stops its host when the control pipe reports end-of-file
+(the parent's end closes with the parent, even on SIGKILL) or when its parent process id changes
+(checked four times a second), and exits by force if stopping takes longer than ``STOP_GRACE``.
+A child runs in a session of its own and ignores SIGINT (the parent decides when it stops), and
+stops cleanly on SIGTERM.
 """
 
 from __future__ import annotations
 
 import importlib
 import multiprocessing
+import os
+import signal
 import threading
 import traceback
 from multiprocessing.connection import Connection
 from multiprocessing.context import SpawnProcess
 from typing import Any
 
+STOP_GRACE = 10.0  # s a child may take to stop its host once its parent is gone
+
 
 class TwinProcessError(RuntimeError):
     """The twin process failed to start, died, or a control call failed inside it."""
 
 
-def _child_main(factory_path: str, kwargs: dict[str, Any], conn: Connection) -> None:
+class _ParentGone(BaseException):
+    """Raised in the child's main thread when its parent is gone or SIGTERM asks it to stop."""
+
+
+def _watch_parent(parent_pid: int, stopping: threading.Event) -> None:
+    while not stopping.wait(0.25):
+        if os.getppid() != parent_pid:
+            os.kill(os.getpid(), signal.SIGTERM)  # interrupts the main thread's wait for a message
+            return
+
+
+def _hard_exit_later(seconds: float) -> None:
+    timer = threading.Timer(seconds, lambda: os._exit(3))
+    timer.daemon = True
+    timer.start()
+
+
+def _child_main(factory_path: str, kwargs: dict[str, Any], conn: Connection, parent_pid: int) -> None:
+    # A twin is a device of its own: its own session, so a terminal's signals do not reach it and,
+    # with the kernel's autogroup scheduling, busy processes of another session (a test run, a CPU
+    # burner) share the CPU with it as one group instead of crowding it out thread by thread.
+    os.setsid()
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # The parent marks us daemonic (it terminates us if it exits without stopping us), and
+    # multiprocessing refuses children to daemonic processes. A host may run twin processes of its
+    # own (the cell supervisor); their lifetime is bound to ours by the pipe and parent watch below.
+    multiprocessing.current_process().daemon = False
+
+    def on_sigterm(*_: object) -> None:
+        raise _ParentGone()
+
+    signal.signal(signal.SIGTERM, on_sigterm)
+    stopping = threading.Event()
+    threading.Thread(target=_watch_parent, args=(parent_pid, stopping), name="parent-watch", daemon=True).start()
     host = None
     try:
         module_name, _, attr = factory_path.partition(":")
@@ -32,8 +75,16 @@ def _child_main(factory_path: str, kwargs: dict[str, Any], conn: Connection) -> 
         host = factory(**kwargs)
         endpoints = host.start()
         conn.send({"ok": True, "endpoints": endpoints})
+    except _ParentGone:
+        _hard_exit_later(STOP_GRACE)
+        if host is not None:
+            host.stop()
+        return
     except BaseException as exc:  # report any start-up failure to the parent, then exit
-        conn.send({"ok": False, "error": f"{type(exc).__name__}: {exc}", "trace": traceback.format_exc()})
+        try:
+            conn.send({"ok": False, "error": f"{type(exc).__name__}: {exc}", "trace": traceback.format_exc()})
+        except (OSError, BrokenPipeError):
+            pass
         if host is not None:
             try:
                 host.stop()
@@ -53,7 +104,12 @@ def _child_main(factory_path: str, kwargs: dict[str, Any], conn: Connection) -> 
                 conn.send({"ok": True, "result": host.control(command, **call_kwargs)})
             except Exception as exc:
                 conn.send({"ok": False, "error": f"{type(exc).__name__}: {exc}"})
+    except _ParentGone:
+        pass
     finally:
+        stopping.set()
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)  # one stop is enough
+        _hard_exit_later(STOP_GRACE)
         host.stop()
         try:
             conn.send({"ok": True, "stopped": True})
@@ -72,40 +128,56 @@ class TwinProcess:
         Keyword arguments for the factory (must be picklable).
     start_timeout, call_timeout : float
         Seconds to wait for start-up and for each control call.
+    name : str, optional
+        How errors name the twin (default: the factory).
 
-    Use as a context manager, or call ``start``/``stop``.
+    Use as a context manager, or call ``start``/``stop`` (``launch`` then ``wait_started`` starts
+    several processes in parallel).
     """
 
     def __init__(self, factory: str, kwargs: dict[str, Any] | None = None, *, start_timeout: float = 30.0,
-                 call_timeout: float = 10.0) -> None:
+                 call_timeout: float = 10.0, name: str | None = None) -> None:
         self.factory = factory
         self.kwargs = dict(kwargs or {})
         self.start_timeout = start_timeout
         self.call_timeout = call_timeout
+        self.name = name or f"twin {factory}"
         self.endpoints: dict[str, Any] = {}
+        self.exitcode: int | None = None
         self._process: SpawnProcess | None = None
         self._conn: Connection | None = None
         self._lock = threading.Lock()
 
     def start(self) -> dict[str, Any]:
+        self.launch()
+        return self.wait_started()
+
+    def launch(self) -> None:
+        """Start the child process (it builds and starts its host in the background)."""
         ctx = multiprocessing.get_context("spawn")
         parent, child = ctx.Pipe()
-        process = ctx.Process(target=_child_main, args=(self.factory, self.kwargs, child), daemon=True)
+        process = ctx.Process(target=_child_main, args=(self.factory, self.kwargs, child, os.getpid()), daemon=True)
         self._process = process
         process.start()
         child.close()
         self._conn = parent
+
+    def wait_started(self) -> dict[str, Any]:
+        """Wait for the host's endpoints; stops the child and raises ``TwinProcessError`` if it fails."""
+        parent = self._conn
+        if parent is None:
+            raise TwinProcessError(f"{self.name} was not launched")
         if not parent.poll(self.start_timeout):
             self.stop()
-            raise TwinProcessError(f"twin {self.factory} did not start within {self.start_timeout} s")
+            raise TwinProcessError(f"{self.name} did not start within {self.start_timeout} s")
         try:
             reply = parent.recv()
         except EOFError:
             self.stop()
-            raise TwinProcessError(f"twin {self.factory} died during start-up") from None
+            raise TwinProcessError(f"{self.name} died during start-up") from None
         if not reply["ok"]:
             self.stop()
-            raise TwinProcessError(f"twin {self.factory} failed to start: {reply['error']}\n{reply.get('trace', '')}")
+            raise TwinProcessError(f"{self.name} failed to start: {reply['error']}\n{reply.get('trace', '')}")
         self.endpoints = reply["endpoints"]
         return self.endpoints
 
@@ -117,13 +189,16 @@ class TwinProcess:
         """
         with self._lock:
             if self._conn is None or self._process is None or not self._process.is_alive():
-                raise TwinProcessError(f"twin {self.factory} is not running")
-            self._conn.send((command, kwargs))
-            if not self._conn.poll(timeout or self.call_timeout):
-                raise TwinProcessError(f"twin {self.factory}: control call {command!r} timed out")
-            reply = self._conn.recv()
+                raise TwinProcessError(f"{self.name} is not running")
+            try:
+                self._conn.send((command, kwargs))
+                if not self._conn.poll(timeout or self.call_timeout):
+                    raise TwinProcessError(f"{self.name}: control call {command!r} timed out")
+                reply = self._conn.recv()
+            except (EOFError, OSError):
+                raise TwinProcessError(f"{self.name} went away during control call {command!r}") from None
         if not reply["ok"]:
-            raise TwinProcessError(f"twin {self.factory}: control call {command!r} failed: {reply['error']}")
+            raise TwinProcessError(f"{self.name}: control call {command!r} failed: {reply['error']}")
         return reply["result"]
 
     def stop(self, timeout: float = 10.0) -> None:
@@ -145,12 +220,30 @@ class TwinProcess:
         if process.is_alive():
             process.kill()
             process.join(5.0)
+        self.exitcode = process.exitcode
         if conn is not None:
             conn.close()
 
     @property
     def alive(self) -> bool:
         return self._process is not None and self._process.is_alive()
+
+    @property
+    def pid(self) -> int | None:
+        return None if self._process is None else self._process.pid
+
+    @property
+    def sentinel(self) -> int | None:
+        """A file descriptor that becomes ready when the child ends (``multiprocessing.connection.wait``)."""
+        return None if self._process is None else self._process.sentinel
+
+    def poll_exit(self, timeout: float = 0.0) -> int | None:
+        """The child's exit code if it has ended within ``timeout`` s (it is then reaped), else None."""
+        if self._process is None:
+            return self.exitcode
+        self._process.join(timeout)
+        self.exitcode = self._process.exitcode
+        return self.exitcode
 
     def __enter__(self) -> TwinProcess:
         self.start()

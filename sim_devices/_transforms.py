@@ -54,21 +54,36 @@ def rotvec_to_matrix(rotvec) -> np.ndarray:
 
 
 def matrix_to_rotvec(rotation: np.ndarray) -> np.ndarray:
+    """Rotation vector (angle in [0, π]) of a rotation matrix, accurate at every angle.
+
+    Through the unit quaternion (Shepperd's method: built from the largest of its four components,
+    so no component is recovered from a difference of nearly equal numbers): near π the
+    antisymmetric part of the matrix vanishes and the textbook formula loses the axis's sign and
+    most of its digits.
+    """
     r = np.asarray(rotation, dtype=float)
-    cos_angle = np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0)
-    angle = float(np.arccos(cos_angle))
-    if angle < 1e-12:
-        return np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]]) / 2.0
-    if np.pi - angle < 1e-6:
-        # Near pi the antisymmetric part vanishes: take the axis from the symmetric part.
-        b = (r + np.eye(3)) / 2.0
-        axis = np.sqrt(np.clip(np.diag(b), 0.0, None))
-        i = int(np.argmax(axis))
-        axis = b[i] / axis[i]
-        axis /= np.linalg.norm(axis)
-        return axis * angle
-    axis = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]]) / (2.0 * np.sin(angle))
-    return axis * angle
+    trace = r[0, 0] + r[1, 1] + r[2, 2]
+    candidates = (trace, r[0, 0], r[1, 1], r[2, 2])
+    i = int(np.argmax(candidates))
+    if i == 0:
+        w = 0.5 * np.sqrt(max(1.0 + trace, 0.0))
+        v = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]]) / (4.0 * w)
+    else:
+        a = i - 1
+        b, c = (a + 1) % 3, (a + 2) % 3
+        va = 0.5 * np.sqrt(max(1.0 + r[a, a] - r[b, b] - r[c, c], 0.0))
+        v = np.empty(3)
+        v[a] = va
+        v[b] = (r[b, a] + r[a, b]) / (4.0 * va)
+        v[c] = (r[c, a] + r[a, c]) / (4.0 * va)
+        w = (r[c, b] - r[b, c]) / (4.0 * va)
+    if w < 0:  # the same rotation; this sign keeps the angle in [0, π]
+        w, v = -w, -v
+    norm = float(np.linalg.norm(v))
+    if norm < 1e-300:
+        return np.zeros(3)
+    angle = 2.0 * float(np.arctan2(norm, w))
+    return v * (angle / norm)
 
 
 def make_transform(rotation: np.ndarray | None = None, translation=None) -> np.ndarray:

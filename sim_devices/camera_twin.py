@@ -1,9 +1,10 @@
 """Camera twins: image files for the pylon emulator, and an in-process ``Camera`` for unit tests.
 
 ``CameraFileTwin`` renders the three frames on every settled world state and replaces the files
-the pylon emulator serves (``ImageFilename``) **before** the world's ``set_*`` call returns: world
-subscribers run synchronously, so once a robot twin reports "move done", any grab triggered after
-that sees the new pose, never a stale frame. The emulator re-reads the file at each grab.
+the pylon emulator serves (``ImageFilename``) **before** the world's ``set_*`` call returns (in a
+cell of processes: before every process's subscribers have acknowledged the state), so once a
+robot twin reports "move done", any grab triggered after that sees the new pose, never a stale
+frame. The pylon adapter restarts acquisition when the file changed (the emulator reads it then).
 
 ``SimCamera`` implements ``drivers.camera.Camera`` (plus ``trigger``/``retrieve``) by rendering
 directly from the world, without pypylon.
@@ -15,6 +16,7 @@ import os
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -41,8 +43,26 @@ def write_bmp_atomically(path: Path, image: np.ndarray) -> None:
     os.replace(tmp, path)  # atomic within one directory
 
 
+@dataclass
+class _AheadFrames:
+    """The frames of an announced pose, rendered ahead of time into hidden files."""
+
+    index: int  # the frame set they are numbered (and seeded) as
+    opr_in_m: np.ndarray
+    scale: float
+    paths: dict[str, Path]
+    state: str = "wanted"  # wanted → rendering → done; "taken" when the settled state came first; "failed"
+
+
 class CameraFileTwin:
     """Keeps ``<directory>/x.bmp``, ``y.bmp``, ``z.bmp`` showing the current settled true pose.
+
+    On every settled world state the three frames are replaced (write, then rename) before the
+    twin's subscriber returns, so once a robot twin reports "move done" — which it does only after
+    every subscriber has seen the settled pose — a grab shows the new pose, never a stale frame.
+    When a move is announced (``World.announce``: the robot knows its attained end pose when it
+    plans the move) the frames for that pose are rendered ahead, on a worker thread, while the arm
+    moves; the settled state then only renames them into place.
 
     Parameters
     ----------
@@ -51,7 +71,8 @@ class CameraFileTwin:
     directory : path
         Created if missing. Point each emulated camera's ``ImageFilename`` at its file.
     seed : int, optional
-        Noise seed (default: the world's seed); frame noise is seeded per (camera, world seq).
+        Noise seed (default: the world's seed); the noise of frame set ``n`` (the n-th rendered,
+        ``frames_written``) is seeded by ``(seed, camera, n)``.
     """
 
     def __init__(self, world: World, bench: OpticalBench, directory: str | Path, seed: int | None = None) -> None:
@@ -64,15 +85,27 @@ class CameraFileTwin:
         self.laser_on = True
         self.exposure_scale = 1.0
         self.frames_written = 0
+        self.announced = 0  # frame sets whose pose had been announced (matched its announcement)
+        self.rendered_ahead = 0  # ... of which the rendering had started before the settled state came
         self._subscribed = False
-        self._lock = threading.Lock()
+        self._lock = threading.Lock()  # one frame set at a time is put in place
+        self._render_lock = threading.Lock()  # the renderer's caches are not shared between threads
+        self._ahead = threading.Condition()
+        self._ahead_frames: _AheadFrames | None = None  # the latest announcement's
+        self._announcements = 0
+        self._worker: threading.Thread | None = None
+        self._stopping = False
         self._last_state: WorldState | None = None
 
     # ------------------------------------------------------------------ lifecycle (cell host API)
     def start(self) -> dict[str, Any]:
         """Render the current pose, then follow the world. Returns the file paths."""
         if not self._subscribed:
+            self._stopping = False
+            self._worker = threading.Thread(target=self._render_ahead_loop, name="camera-render-ahead", daemon=True)
+            self._worker.start()
             self.world.subscribe(self._on_state)
+            self.world.on_announce(self._on_announce)
             self._subscribed = True
             self._on_state(self.world.state(), force=True)
         return {"files": {name: str(path) for name, path in self.paths.items()}}
@@ -80,7 +113,18 @@ class CameraFileTwin:
     def stop(self) -> None:
         if self._subscribed:
             self.world.unsubscribe(self._on_state)
+            self.world.remove_announce_listener(self._on_announce)
             self._subscribed = False
+        with self._ahead:
+            self._stopping = True
+            self._ahead.notify_all()
+        if self._worker is not None:
+            self._worker.join(10.0)
+            self._worker = None
+        with self._ahead:
+            if self._ahead_frames is not None:
+                _remove(self._ahead_frames)
+                self._ahead_frames = None
 
     def set_laser(self, on: bool) -> dict[str, int]:
         """Switch the OPR's lasers (off: the screens show only the background) and re-render now."""
@@ -100,29 +144,107 @@ class CameraFileTwin:
     def files(self) -> dict[str, str]:
         return {name: str(path) for name, path in self.paths.items()}
 
+    def stats(self) -> dict[str, int]:
+        """Frame sets written, how many had been announced, and how many of those were (being) rendered
+        before their settled state came."""
+        return {"frames_written": self.frames_written, "announced": self.announced,
+                "rendered_ahead": self.rendered_ahead}
+
     def control(self, command: str, /, **kwargs: Any) -> Any:
-        """``laser`` (on: bool), ``exposure`` (scale: float), ``render`` (re-render now), ``files``."""
+        """``laser`` (on: bool), ``exposure`` (scale: float), ``render`` (re-render now), ``files``, ``stats``."""
         commands: dict[str, Callable[..., Any]] = {"laser": self.set_laser, "exposure": self.set_exposure,
-                                                   "render": self.render, "files": self.files}
+                                                   "render": self.render, "files": self.files, "stats": self.stats}
         return dispatch(commands, command, kwargs, "camera twin")
 
     # ------------------------------------------------------------------ rendering
+    def _scale(self) -> float:
+        return self.exposure_scale if self.laser_on else 0.0
+
+    def _on_announce(self, expected: WorldState) -> None:
+        """A pose is expected to settle next: queue its frames for the worker (returns at once)."""
+        with self._ahead:
+            previous = self._ahead_frames
+            if previous is not None and previous.state in ("wanted", "done"):
+                _remove(previous)  # superseded (one being rendered is removed by the worker)
+            self._announcements += 1
+            self._ahead_frames = _AheadFrames(
+                self.frames_written + 1, expected.opr_in_m.copy(), self._scale(),
+                {name: self.directory / f".{name}.ahead-{self._announcements}.bmp" for name in AXIS_NAMES})
+            self._ahead.notify_all()
+
+    def _render_ahead_loop(self) -> None:
+        while True:
+            with self._ahead:
+                while not self._stopping and (self._ahead_frames is None or self._ahead_frames.state != "wanted"):
+                    self._ahead.wait()
+                if self._stopping:
+                    return
+                frames = self._ahead_frames
+                assert frames is not None
+                frames.state = "rendering"
+            try:
+                with self._render_lock:
+                    for name, path in frames.paths.items():
+                        image = self.renderer.render(name, frames.opr_in_m, seq=frames.index,
+                                                     exposure_scale=frames.scale)
+                        write_bmp_atomically(path, image)
+                outcome = "done"
+            except Exception:  # rendering ahead is an optimisation: the settled state renders anyway
+                outcome = "failed"
+            with self._ahead:
+                frames.state = outcome
+                if self._ahead_frames is not frames or outcome == "failed":
+                    _remove(frames)  # superseded meanwhile
+                self._ahead.notify_all()
+
+    def _take_ahead(self, index: int, opr_in_m: np.ndarray, scale: float) -> tuple[bool, _AheadFrames | None]:
+        """Whether this frame set was announced, and its frames if they were rendered ahead (waiting for
+        them if under way; one not started yet is taken over: rendered here, now, at the same cost)."""
+        with self._ahead:
+            frames = self._ahead_frames
+            # The same pose, computed in another process (the BLAS kernel may round the last bit
+            # differently): 1e-12 m or rad is far below anything a pixel can show.
+            if frames is None or frames.index != index or frames.scale != scale or not np.allclose(
+                    frames.opr_in_m, opr_in_m, rtol=0.0, atol=1e-12):
+                return False, None
+            if frames.state == "wanted":
+                frames.state = "taken"
+                self._ahead_frames = None
+                return True, None
+            while frames.state == "rendering":
+                self._ahead.wait(1.0)
+            self._ahead_frames = None
+            return True, frames if frames.state == "done" else None
+
     def _on_state(self, state: WorldState, force: bool = False) -> None:
         if not state.settled and not force:
             return  # frames keep showing the last settled pose while the robot moves
         with self._lock:
-            scale = self.exposure_scale if self.laser_on else 0.0
+            index = self.frames_written + 1
+            scale = self._scale()
+            announced, ahead = self._take_ahead(index, state.opr_in_m, scale)
             files = {}
             for name in AXIS_NAMES:
-                image = self.renderer.render(name, state.opr_in_m, seq=state.seq, exposure_scale=scale)
-                write_bmp_atomically(self.paths[name], image)
+                if ahead is not None:
+                    os.replace(ahead.paths[name], self.paths[name])  # atomic: the old frame or the new one
+                else:
+                    with self._render_lock:
+                        image = self.renderer.render(name, state.opr_in_m, seq=index, exposure_scale=scale)
+                    write_bmp_atomically(self.paths[name], image)
                 files[name] = str(self.paths[name])
-            self.frames_written += 1
+            self.frames_written = index
+            self.announced += announced
+            self.rendered_ahead += ahead is not None
             self._last_state = state
             self.world.truth.record(
-                "frames", seq=state.seq, time=self.world.clock(), files=files,
-                opr_in_m=pose_record(state.opr_in_m), laser_on=self.laser_on,
+                "frames", seq=state.seq, index=index, time=self.world.clock(), files=files,
+                opr_in_m=pose_record(state.opr_in_m), laser_on=self.laser_on, rendered_ahead=ahead is not None,
             )
+
+
+def _remove(frames: _AheadFrames) -> None:
+    for path in frames.paths.values():
+        path.unlink(missing_ok=True)
 
 
 class SimCamera:

@@ -1,12 +1,20 @@
-"""The whole simulated cell in one process: every twin around one world model.
+"""The simulated cell: every twin in its own process around one shared world, and its control API.
 
-``CellHost`` builds the world, the optical bench and camera file twin, the UR controller twin, the
-rotary table twins (Modbus TCP/RTU, GCS serial) and the interferometer twins (socketcand, slcan),
-starts them, writes a station YAML with every endpoint, and serves a control channel (the
-simulated operator: re-mount the OPR on the table, re-aim the interferometer; fault injection;
-ground truth). Its twins are typed attributes (``robot``, ``rotary_table``, ``interferometer``,
-``cameras``) and its control API is typed methods; ``control(command, **args)`` reaches the same
-methods by name, through one table, for the JSON channel and the child-process pipe.
+``CellHost`` is the supervisor. It builds the seeded world and shares its state
+(``World.share``: one small memory-mapped state file, ``sim_devices._world_channel``), then starts
+one process per twin — the camera file twin (with the optical bench), the UR controller twin, the
+rotary table twin (Modbus TCP/RTU, GCS serial) and the interferometer twin (socketcand, slcan) —
+each attached to that world, writes a station YAML with every endpoint, serves a control channel
+(the simulated operator: re-mount the OPR on the table, re-aim the interferometer; fault
+injection; ground truth) and watches its twins: one that dies is reported by name (stderr, the
+truth log, ``status()``, and every control call that needs it). No twin outlives the supervisor:
+each stops when its control pipe to the supervisor closes or its parent changes
+(``sim_devices._process``).
+
+With a process per twin, the 500 Hz robot cycle, the 1 kHz interferometer clock and the camera
+renderer no longer share one interpreter: none can starve another, and the renderer is out of the
+robot's control path (the robot announces a move's end pose when it plans it, so the frames are
+usually ready when the move ends; its "done" still waits until the cameras show the final pose).
 
 ``SimCell`` runs a ``CellHost`` in a child process (the ur_rtde client must never share a process
 with its twin) and offers the same typed methods; it is what tests and ``instrument run --station
@@ -15,49 +23,37 @@ sim`` use; ``instrument sim`` runs a ``CellHost`` in the foreground.
 
 from __future__ import annotations
 
+import shutil
 import socket
+import sys
 import tempfile
-import time
+import threading
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
+from multiprocessing.connection import wait as wait_for_exits
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal, Protocol, TypeVar
+from typing import Any, Literal, Protocol
 
 import numpy as np
 import yaml
 
 from sim_devices._config import checked_fields
-from sim_devices._process import TwinProcess
+from sim_devices._process import TwinProcess, TwinProcessError
 from sim_devices._transforms import invert, matrix_to_pose6
 from sim_devices.control import ControlClient, ControlServer, dispatch
-from sim_devices.faults import FaultKind, FaultPlan
+from sim_devices.faults import FaultKind, fault_kind
+from sim_devices.optics import OpticalBench
 from sim_devices.world import Axis, World, WorldConfig
-
-if TYPE_CHECKING:  # imported when the cell starts: a SimCell's parent process never needs the twins' modules
-    from sim_devices.camera_twin import CameraFileTwin
-    from sim_devices.interferometer import InterferometerTwin
-    from sim_devices.optics import OpticalBench
-    from sim_devices.rotary_table import RotaryTableTwin
-    from sim_devices.ur import URControllerTwin
 
 UR_PORTS = (30004, 29999, 30003)
 
 TwinName = Literal["cameras", "robot", "rotary_table", "interferometer"]
 TWIN_NAMES: tuple[TwinName, ...] = ("cameras", "robot", "rotary_table", "interferometer")
+FAULT_TWINS = ("robot", "rotary_table", "interferometer")
 
 
-class Twin(Protocol):
-    """What the cell needs of a twin: start (→ endpoints), stop, and a control API by name."""
-
-    def start(self) -> dict[str, Any]: ...
-
+class Stoppable(Protocol):
     def stop(self) -> None: ...
-
-    def control(self, command: str, /, **kwargs: Any) -> Any: ...
-
-
-_TwinT = TypeVar("_TwinT", bound=Twin)
-_PartT = TypeVar("_PartT")
 
 
 def free_loopback_host(first: int = 2, last: int = 254, exclude: tuple[str, ...] = ()) -> str:
@@ -81,16 +77,10 @@ def free_loopback_host(first: int = 2, last: int = 254, exclude: tuple[str, ...]
     raise RuntimeError("no loopback address with the UR ports free in 127.0.0.2-254")
 
 
-def _scaled_clock(scale: float) -> Callable[[], float]:
-    """A monotonic clock that runs ``scale`` times faster than wall time."""
-    origin = time.monotonic()
-    return lambda: origin + (time.monotonic() - origin) * scale
-
-
 @dataclass(frozen=True)
 class CellConfig:
     """The sections of a cell configuration (``instrument sim --config``); each is a mapping that its
-    own twin checks when the cell starts (unknown keys are refused there, unknown sections here)."""
+    own twin's settings check (unknown keys are refused there, unknown sections here)."""
 
     world: Mapping[str, Any] = field(default_factory=dict)
     optics: Mapping[str, Any] = field(default_factory=dict)
@@ -108,18 +98,71 @@ class CellConfig:
                 raise ValueError(f"cell config: section {name} must be a mapping, got {type(value).__name__}")
         return cls(**sections)
 
+    def check(self) -> None:
+        """Build every twin's settings once, so a bad key is one ``ValueError`` before any process starts."""
+        from sim_devices.interferometer import InterferometerTwinConfig
+        from sim_devices.optics import OpticsConfig
+        from sim_devices.rotary_table import RotaryTableTwinConfig
+        from sim_devices.ur import URTwinConfig
+
+        WorldConfig.from_dict(self.world)
+        OpticsConfig.from_dict(self.optics)
+        URTwinConfig.from_dict(self.robot)
+        RotaryTableTwinConfig.from_dict(self.rotary_table)
+        InterferometerTwinConfig.from_dict(self.interferometer)
+
 
 class CellNotRunning(RuntimeError):
-    """A control method of a cell that is not running (not started, or stopped)."""
+    """A control method of a cell that is not running (not started, or stopped), or of a twin that died."""
+
+
+class TwinHandle:
+    """The supervisor's handle on one twin process: its control API by name, its process and health."""
+
+    def __init__(self, name: str, process: TwinProcess) -> None:
+        self.name = name
+        self.process = process
+        self.died: int | None = None  # exit code, once the twin died while the cell ran
+        self.realtime = False  # its threads run under SCHED_RR (the robot and interferometer, if allowed)
+
+    @property
+    def endpoints(self) -> dict[str, Any]:
+        return self.process.endpoints
+
+    @property
+    def pid(self) -> int | None:
+        return self.process.pid
+
+    @property
+    def alive(self) -> bool:
+        return self.died is None and self.process.alive
+
+    def control(self, command: str, /, **kwargs: Any) -> Any:
+        """The twin's own control API (or the cell's ``cell.*`` wiring) in its process."""
+        if not self.alive:
+            code = self.died if self.died is not None else self.process.poll_exit()
+            raise CellNotRunning(f"simulated cell: the {self.name} twin is not running (it died, exit code {code})")
+        try:
+            return self.process.call(command, **kwargs)
+        except TwinProcessError as exc:
+            if not self.process.alive:
+                raise CellNotRunning(f"simulated cell: the {self.name} twin died during {command!r}") from None
+            raise RuntimeError(str(exc)) from None
+
+    def status(self) -> dict[str, Any]:
+        return {"pid": self.pid, "alive": self.alive, "exitcode": self.died, "realtime": self.realtime}
+
+    def stop(self) -> None:
+        self.process.stop()
 
 
 class CellHost:
-    """All twins of the simulated cell around one ``World`` (see module docstring).
+    """The supervisor of the simulated cell (see module docstring).
 
     Parameters
     ----------
     directory : str
-        Where the cell writes camera frames, the ground-truth log and ``station.yaml``.
+        Where the cell writes camera frames, the ground-truth log, the shared world and ``station.yaml``.
     seed : int
         Seed of every random stream in the cell.
     robot_host : str, optional
@@ -130,8 +173,9 @@ class CellHost:
         Per-twin settings (``CellConfig``): ``world``, ``optics``, ``robot``, ``rotary_table``,
         ``interferometer``. Checked when the cell starts (a bad setting is a ``ValueError``).
 
-    After ``start()`` the twins are the typed attributes ``world``, ``bench``, ``cameras``,
-    ``robot``, ``rotary_table`` and ``interferometer`` (``CellNotRunning`` before and after).
+    After ``start()``: ``world`` (the supervisor's view of the shared ``World``), ``bench`` (the
+    ``OpticalBench``, as the camera process builds it) and one ``TwinHandle`` per twin process,
+    ``cameras``, ``robot``, ``rotary_table``, ``interferometer`` (``CellNotRunning`` before and after).
     """
 
     def __init__(self, directory: str, seed: int = 0, robot_host: str | None = None, time_scale: float = 1.0,
@@ -143,16 +187,16 @@ class CellHost:
         self.config = dict(config or {})
         self._world: World | None = None
         self._bench: OpticalBench | None = None
-        self._cameras: CameraFileTwin | None = None
-        self._robot: URControllerTwin | None = None
-        self._rotary_table: RotaryTableTwin | None = None
-        self._interferometer: InterferometerTwin | None = None
-        self._started: list[tuple[str, Twin]] = []  # in start order; stopped in reverse
+        self._twins: dict[str, TwinHandle] = {}
+        self._started: list[tuple[str, Stoppable]] = []  # in start order; stopped in reverse
         self._control: ControlServer | None = None
+        self._stopping = threading.Event()
+        self._monitor: threading.Thread | None = None
         self.endpoints: dict[str, Any] = {}
         # The control API by name (the JSON channel and TwinProcess): one explicit table.
         self._commands: dict[str, Callable[..., Any]] = {
             "ping": self.ping,
+            "status": self.status,
             "mount_on_table": self.mount_on_table,
             "mount_on_robot": self.mount_on_robot,
             "align_interferometer": self.align_interferometer,
@@ -175,83 +219,111 @@ class CellHost:
         return self._running(self._bench, "optical bench")
 
     @property
-    def cameras(self) -> CameraFileTwin:
-        return self._running(self._cameras, "camera twin")
+    def cameras(self) -> TwinHandle:
+        return self.twin("cameras")
 
     @property
-    def robot(self) -> URControllerTwin:
-        return self._running(self._robot, "robot twin")
+    def robot(self) -> TwinHandle:
+        return self.twin("robot")
 
     @property
-    def rotary_table(self) -> RotaryTableTwin:
-        return self._running(self._rotary_table, "rotary table twin")
+    def rotary_table(self) -> TwinHandle:
+        return self.twin("rotary_table")
 
     @property
-    def interferometer(self) -> InterferometerTwin:
-        return self._running(self._interferometer, "interferometer twin")
+    def interferometer(self) -> TwinHandle:
+        return self.twin("interferometer")
 
     @staticmethod
-    def _running(part: _PartT | None, what: str) -> _PartT:
+    def _running(part: Any, what: str) -> Any:
         if part is None:
             raise CellNotRunning(f"simulated cell: the {what} is not running (start the cell first)")
         return part
 
-    def twin(self, name: str) -> Twin:
-        """One twin by name (``cameras``, ``robot``, ``rotary_table``, ``interferometer``)."""
-        twins: dict[str, Callable[[], Twin]] = {"cameras": lambda: self.cameras, "robot": lambda: self.robot,
-                                                "rotary_table": lambda: self.rotary_table,
-                                                "interferometer": lambda: self.interferometer}
-        if name not in twins:
+    def twin(self, name: str) -> TwinHandle:
+        """One twin's handle by name (``cameras``, ``robot``, ``rotary_table``, ``interferometer``)."""
+        if name not in TWIN_NAMES:
             raise ValueError(f"simulated cell: no twin {name!r}; expected one of {', '.join(TWIN_NAMES)}")
-        return twins[name]()
+        return self._running(self._twins.get(name), f"{name} twin")
 
     # ------------------------------------------------------------------------------ lifecycle
     def start(self) -> dict[str, Any]:
-        """Build and start every twin, the control channel and the station file; returns the endpoints.
+        """Share the world, start one process per twin, the control channel and the station file;
+        returns the endpoints.
 
         Raises
         ------
         ValueError
-            A bad setting in the cell configuration (one line naming it). Nothing stays running.
+            A bad setting in the cell configuration (one line naming it). Nothing is started.
+        RuntimeError
+            A twin failed to start (its message). Nothing stays running.
         """
-        from sim_devices.camera_twin import CameraFileTwin
-        from sim_devices.interferometer import InterferometerTwin
-        from sim_devices.optics import OpticalBench
-        from sim_devices.rotary_table import RotaryTableTwin
-        from sim_devices.ur import URControllerTwin
-
         config = CellConfig.from_dict(self.config)
+        config.check()
         self.directory.mkdir(parents=True, exist_ok=True)
-        world_cfg = WorldConfig.from_dict({**config.world, "seed": self.seed})
-        self._world = world = World(world_cfg, truth_path=self.directory / "truth.jsonl")
+        truth_path = self.directory / "truth.jsonl"
+        world_section = {**config.world, "seed": self.seed}
+        self._world = world = World(WorldConfig.from_dict(world_section), truth_path=truth_path)
+        self._stopping.clear()
         try:
+            world_dir = str(world.share(self.directory / "world"))
             self._bench = bench = OpticalBench(world, config.optics)
-            self._cameras = self._add("cameras", CameraFileTwin(world, bench, self.directory / "frames"))
             host = self.robot_host or free_loopback_host()
-            robot_config = {"time_scale": self.time_scale, "seed": self.seed, **config.robot}
-            self._robot = self._add("robot", URControllerTwin(world, host, robot_config))
-            self._rotary_table = self._add("rotary_table", RotaryTableTwin(world, config.rotary_table,
-                                                                           clock=_scaled_clock(self.time_scale)))
-            self._interferometer = self._add("interferometer", InterferometerTwin(world, config.interferometer))
+            settings: dict[str, dict[str, Any]] = {
+                "cameras": {"frames": str(self.directory / "frames"), "optics": dict(config.optics)},
+                "robot": {"host": host, "time_scale": self.time_scale, "seed": self.seed, **config.robot},
+                "rotary_table": {**config.rotary_table, "time_scale": self.time_scale},
+                "interferometer": dict(config.interferometer),
+            }
+            common = {"world_dir": world_dir, "world": world_section, "truth_path": str(truth_path)}
+            for name in TWIN_NAMES:  # launched together: their start-ups overlap
+                self._launch(name, {**common, "kind": name, "settings": settings[name]})
+            for name in TWIN_NAMES:
+                self.endpoints[name] = self._wait_started(name, common, settings)
+                self._twins[name].realtime = bool(self._twins[name].control("cell.realtime"))
+            self._monitor = threading.Thread(target=self._watch_twins, name="cell-monitor", daemon=True)
+            self._monitor.start()
             self._control = ControlServer(self.control)
             control_host, control_port = self._control.start()
             self.endpoints["control"] = {"host": control_host, "port": control_port}
-            self.endpoints["truth_log"] = str(self.directory / "truth.jsonl")
+            self.endpoints["truth_log"] = str(truth_path)
             self.endpoints["station"] = str(self.write_station())
             world.truth.record("cell", time=world.clock(), describe=world.describe(),
-                               optics=bench.true_description(), endpoints=self.endpoints)
+                               optics=bench.true_description(), endpoints=self.endpoints,
+                               twins={name: handle.pid for name, handle in self._twins.items()})
+        except TwinProcessError as exc:
+            self.stop()
+            raise RuntimeError(f"simulated cell: {exc}") from None
         except BaseException:
             self.stop()
             raise
         return self.endpoints
 
-    def _add(self, name: str, twin: _TwinT) -> _TwinT:
-        self._started.append((name, twin))
-        self.endpoints[name] = twin.start()
-        return twin
+    def _launch(self, name: str, kwargs: dict[str, Any]) -> None:
+        process = TwinProcess("sim_devices._cell_twins:CellTwin", kwargs, start_timeout=60.0, call_timeout=30.0,
+                              name=f"{name} twin")
+        handle = self._twins[name] = TwinHandle(name, process)
+        self._started.append((name, handle))
+        process.launch()
+
+    def _wait_started(self, name: str, common: dict[str, Any], settings: dict[str, dict[str, Any]]) -> dict[str, Any]:
+        """The twin's endpoints; the robot moves to another free loopback address if its ports were
+        taken between the check and its bind (another cell starting at the same time)."""
+        tried: list[str] = []
+        while True:
+            try:
+                return self._twins[name].process.wait_started()
+            except TwinProcessError as exc:
+                if name != "robot" or self.robot_host or "cannot bind" not in str(exc) or len(tried) >= 5:
+                    raise
+                tried.append(settings["robot"]["host"])
+                self._started = [(n, h) for n, h in self._started if h is not self._twins[name]]
+                settings["robot"]["host"] = free_loopback_host(exclude=tuple(tried))
+                self._launch(name, {**common, "kind": name, "settings": settings[name]})
 
     def stop(self) -> None:
         """Stop everything started, even when one part fails to stop; then report the failures."""
+        self._stopping.set()
         problems = []
         if self._control is not None:
             control, self._control = self._control, None
@@ -265,13 +337,42 @@ class CellHost:
                 twin.stop()
             except Exception as exc:
                 problems.append(f"{name}: {type(exc).__name__}: {exc}")
-        self._cameras = self._robot = self._rotary_table = self._interferometer = None
+        if self._monitor is not None:
+            self._monitor.join(5.0)
+            self._monitor = None
+        self._twins = {}
         self._bench = None
         if self._world is not None:
             world, self._world = self._world, None
-            world.truth.close()
+            world.close()
+            shutil.rmtree(self.directory / "world", ignore_errors=True)  # the state file and wake-up FIFOs
         if problems:
             raise RuntimeError("simulated cell: stopping failed for " + "; ".join(problems))
+
+    def _watch_twins(self) -> None:
+        """Report a twin whose process ends while the cell runs (by name), and free its world slots."""
+        while not self._stopping.is_set():
+            handles = {h.process.sentinel: h for h in self._twins.values() if h.died is None and h.process.alive}
+            sentinels = [s for s in handles if s is not None]
+            if not sentinels:
+                self._stopping.wait(0.5)
+                continue
+            for sentinel in wait_for_exits(sentinels, timeout=0.5):
+                if self._stopping.is_set():
+                    return
+                handle = handles[sentinel]  # type: ignore[index]
+                self._report_death(handle)
+
+    def _report_death(self, handle: TwinHandle) -> None:
+        pid = handle.pid
+        code = handle.process.poll_exit(timeout=2.0)  # its pipe closes a moment before it can be reaped
+        handle.died = -1 if code is None else code
+        world = self._world
+        if world is not None and world.channel is not None and pid is not None:
+            world.channel.release_slots_of(pid)
+            world.truth.record("twin_died", time=world.clock(), twin=handle.name, pid=pid, exitcode=handle.died)
+        print(f"simulated cell: the {handle.name} twin (pid {pid}) died, exit code {handle.died}",
+              file=sys.stderr, flush=True)
 
     # ------------------------------------------------------------------------------ control API
     def control(self, command: str, /, **args: Any) -> Any:
@@ -287,11 +388,18 @@ class CellHost:
     def ping(self) -> str:
         return "pong"
 
+    def status(self) -> dict[str, dict[str, Any]]:
+        """Each twin's process: ``pid``, ``alive``, for one that died its ``exitcode``, and ``realtime``
+        (its threads run under SCHED_RR: the robot and the interferometer, where the system allows it)."""
+        if not self._twins:
+            raise CellNotRunning("simulated cell: not running (start the cell first)")
+        return {name: handle.status() for name, handle in self._twins.items()}
+
     def mount_on_table(self, axis: Axis) -> str:
         """The operator puts the OPR on the rotary table, its axis along M's ``axis``; returns the mount."""
         world = self.world
         world.mount_on_table(axis)
-        self.rotary_table.sync()  # the OPR now takes the table's angle at once
+        self.rotary_table.control("cell.sync")  # the OPR now takes the table's angle at once
         return world.mount
 
     def mount_on_robot(self) -> str:
@@ -302,22 +410,16 @@ class CellHost:
 
     def align_interferometer(self, axis: Axis) -> dict[str, Any]:
         """The operator re-aims the interferometer along M's ``axis`` (its count is lost); returns its truth."""
-        return self.interferometer.align(axis)
+        return dict(self.interferometer.control("align", axis=axis))
 
-    def _fault_plan(self, device: str, transport: str | None) -> FaultPlan:
-        if device == "robot" and transport is None:
-            return self.robot.faults
-        if device == "rotary_table":
-            return self.rotary_table.faults(transport or "modbus_tcp")
-        if device == "interferometer":
-            return self.interferometer.faults
-        if device == "robot":
-            raise ValueError(f"simulated cell: the robot twin has one fault plan; got transport {transport!r}")
+    def _fault_twin(self, device: str) -> TwinHandle:
         if device == "cameras":
             raise ValueError("simulated cell: the camera file twin takes no faults (the pylon emulator's own "
                              "ForceFailedBuffer is driven through the camera adapter)")
-        raise ValueError(f"simulated cell: no twin {device!r} takes faults; expected robot, rotary_table or "
-                         "interferometer")
+        if device not in FAULT_TWINS:
+            raise ValueError(f"simulated cell: no twin {device!r} takes faults; expected robot, rotary_table or "
+                             "interferometer")
+        return self.twin(device)
 
     def inject_fault(self, device: TwinName, kind: FaultKind | str, count: int = 1, transport: str | None = None,
                      **params: Any) -> list[str]:
@@ -337,25 +439,23 @@ class CellHost:
         **params
             The fault's parameters (``seconds``, ``code``, ``frames``, ``at`` ...).
         """
+        twin = self._fault_twin(device)
+        kind = fault_kind(kind)
+        if device == "robot" and transport is not None:
+            raise ValueError(f"simulated cell: the robot twin has one fault plan; got transport {transport!r}")
         if device == "interferometer" and transport is not None:
             params["transport"] = transport
             transport = None
-        plan = self._fault_plan(device, transport)
-        plan.arm(kind, int(count), **params)
-        return [armed.kind.value for armed in plan.armed()]
+        return list(twin.control("cell.arm", kind=kind.value, count=int(count), transport=transport, params=params))
 
     def clear_faults(self, device: TwinName, transport: str | None = None) -> list[str]:
         """Disarm every fault of one twin (the robot also leaves a safety stop); returns what is still armed."""
-        if device == "robot" and transport is None:
-            self.robot.clear_faults()
-            return []
-        plan = self._fault_plan(device, transport)
-        plan.clear()
-        return [armed.kind.value for armed in plan.armed()]
+        return list(self._fault_twin(device).control("cell.clear", transport=transport))
 
     def fired_faults(self, device: TwinName, transport: str | None = None) -> list[tuple[str, dict[str, Any]]]:
         """Every fault that fired on one twin (endpoint) so far, oldest first: ``(kind, params)``."""
-        return [(kind.value, params) for kind, params in self._fault_plan(device, transport).fired()]
+        return [(str(kind), dict(params))
+                for kind, params in self._fault_twin(device).control("cell.fired", transport=transport)]
 
     def truth(self, event: str | None = None, last: int = 1000) -> list[dict[str, Any]]:
         """The last ``last`` entries of the ground-truth log (of one ``event`` kind, or all)."""
@@ -466,6 +566,11 @@ class SimCell:
             self._tmp = None
 
     @property
+    def supervisor_pid(self) -> int | None:
+        """The process id of the cell's supervisor (its twins are that process's children)."""
+        return self._process.pid
+
+    @property
     def station_path(self) -> Path:
         return Path(self.endpoints["station"])
 
@@ -485,6 +590,9 @@ class SimCell:
     # The same methods and signatures as CellHost's (a test compares them).
     def ping(self) -> str:
         return str(self.control("ping"))
+
+    def status(self) -> dict[str, dict[str, Any]]:
+        return dict(self.control("status"))
 
     def mount_on_table(self, axis: Axis) -> str:
         return str(self.control("mount_on_table", axis=axis))

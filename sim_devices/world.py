@@ -15,17 +15,19 @@ During angle calibration the OPR is taken off the robot and put on the rotary ta
 is (nearly) one of M's axes through M's origin; then the table angle, not the robot, poses it.
 
 Every change of the true pose goes to the subscribers (the camera renderer renders on settled
-poses) and to the ground-truth log.
+poses) and to the ground-truth log. In a cell whose twins run in separate processes, each process
+holds a ``World`` attached to one shared state file (``World.share`` / ``World.attach``).
 """
 
 from __future__ import annotations
 
 import json
+import os
 import threading
 import time
 import zlib
 from collections.abc import Callable, Mapping
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Literal
 
@@ -41,6 +43,7 @@ from sim_devices._transforms import (
     rotvec_to_matrix,
     small_random_transform,
 )
+from sim_devices._world_channel import StateRecord, WakeUps, WorldChannel
 
 Axis = Literal["x", "y", "z"]
 AXES: dict[str, int] = {"x": 0, "y": 1, "z": 2}
@@ -91,34 +94,70 @@ class WorldState:
 
 
 class TruthLog:
-    """Ground truth, one JSON object per line: every settled pose and every frame rendered."""
+    """Ground truth, one JSON object per line: every settled pose, every frame rendered, every payload.
 
-    def __init__(self, path: str | Path | None = None, keep_in_memory: int = 100_000) -> None:
+    Each entry is appended with one ``write`` to a file opened ``O_APPEND``, so the twins of a cell,
+    each in its own process, can share one log without interleaving lines. With ``shared=True``
+    ``entries()`` reads the file (every process's entries); otherwise it returns this process's own.
+    """
+
+    def __init__(self, path: str | Path | None = None, keep_in_memory: int = 100_000, *, shared: bool = False) -> None:
         self.path = Path(path) if path else None
+        self.shared = bool(shared and self.path)
         self._entries: list[dict[str, Any]] = []
         self._keep = keep_in_memory
         self._lock = threading.Lock()
-        self._file = open(self.path, "a", buffering=1, encoding="utf-8") if self.path else None
+        self._fd: int | None = None
+        if self.path:
+            self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+        self._read_offset = 0
+        self._partial = b""
 
     def record(self, event: str, **data: Any) -> dict[str, Any]:
         entry = {"event": event, **{k: _jsonable(v) for k, v in data.items()}}
+        line = (json.dumps(entry) + "\n").encode()
         with self._lock:
-            self._entries.append(entry)
-            if len(self._entries) > self._keep:
-                del self._entries[: len(self._entries) - self._keep]
-            if self._file:
-                self._file.write(json.dumps(entry) + "\n")
+            if not self.shared:
+                self._remember(entry)
+            if self._fd is not None:
+                os.write(self._fd, line)  # one write of a whole line: atomic among O_APPEND writers
         return entry
 
     def entries(self, event: str | None = None) -> list[dict[str, Any]]:
         with self._lock:
+            if self.shared:
+                self._follow_file()
             return [e for e in self._entries if event is None or e["event"] == event]
 
     def close(self) -> None:
         with self._lock:
-            if self._file:
-                self._file.close()
-                self._file = None
+            if self._fd is not None:
+                os.close(self._fd)
+                self._fd = None
+
+    def _remember(self, entry: dict[str, Any]) -> None:
+        self._entries.append(entry)
+        if len(self._entries) > self._keep:
+            del self._entries[: len(self._entries) - self._keep]
+
+    def _follow_file(self) -> None:
+        """Read the lines appended since the last call (any process's)."""
+        assert self.path is not None
+        try:
+            with open(self.path, "rb") as handle:
+                handle.seek(self._read_offset)
+                chunk = handle.read()
+        except FileNotFoundError:
+            return
+        self._read_offset += len(chunk)
+        lines = (self._partial + chunk).split(b"\n")
+        self._partial = lines.pop()  # an unfinished last line waits for its end
+        for line in lines:
+            if line.strip():
+                try:
+                    self._remember(json.loads(line))
+                except ValueError:
+                    continue  # a line cut short by a crash
 
 
 def _jsonable(value: Any) -> Any:
@@ -130,7 +169,13 @@ def _jsonable(value: Any) -> Any:
 
 
 class World:
-    """The one shared truth. Thread-safe; every twin of a cell holds the same instance.
+    """The one shared truth. Thread-safe.
+
+    In one process every twin holds the same instance. In a cell of processes every twin process
+    holds its own ``World`` attached to one shared state file (``share`` in the supervisor,
+    ``attach`` in the twins; see ``sim_devices._world_channel``): the constants (mountings, table
+    axes) follow from the seed, the state (flange pose, mount, table angle, settled) lives in the
+    file, and subscribers in every process see every change.
 
     Parameters
     ----------
@@ -140,6 +185,10 @@ class World:
         Returns seconds; ``time.time`` by default so truth lines up with host frame timestamps.
     truth_path : path, optional
         Where to append the ground-truth log (JSON lines).
+    channel : WorldChannel, optional
+        The shared state of a cell (``World.attach`` builds one); None: the state is this object's.
+    ack_timeout : float
+        Seconds a settled change waits at most for the subscribers of other processes.
     """
 
     def __init__(
@@ -147,12 +196,17 @@ class World:
         config: WorldConfig | None = None,
         clock: Callable[[], float] = time.time,
         truth_path: str | Path | None = None,
+        *,
+        channel: WorldChannel | None = None,
+        ack_timeout: float = 10.0,
     ) -> None:
         self.config = config or WorldConfig()
         self.clock = clock
-        self.truth = TruthLog(truth_path)
+        self.truth = TruthLog(truth_path, shared=channel is not None)
+        self.ack_timeout = float(ack_timeout)
         self._lock = threading.RLock()
         self._subscribers: list[Callable[[WorldState], None]] = []
+        self._announce_listeners: list[Callable[[WorldState], None]] = []
         self._seq = 0
 
         kin = self.config.kinematics
@@ -172,11 +226,58 @@ class World:
         # M is, by definition, the true OPR frame at the reference pose.
         self.base_to_m = self.reference_flange_pose @ self.true_opr_mount
         self.nominal_base_to_m = self.reference_flange_pose @ self.nominal_opr_mount
+        self._m_to_base = invert(self.base_to_m)
 
         self._flange = self.reference_flange_pose.copy()
         self._mount = "robot"
         self._table_angle = 0.0
         self._settled = True
+        self._last_settled = 0
+
+        # Shared mode: the state lives in the channel; a watcher thread serves this process's
+        # subscribers when another process changes it.
+        self._channel = channel
+        self._delivered = -1
+        self._delivered_settled = -1
+        self._deliver_lock = threading.RLock()
+        self._slot: int | None = None
+        self._watcher: threading.Thread | None = None
+        self._watcher_stop = threading.Event()
+        if channel is not None:
+            self._delivered = self._delivered_settled = channel.read().seq
+
+    # ----------------------------------------------------------------------------- shared mode
+    @classmethod
+    def attach(cls, directory: str | Path, config: WorldConfig | None = None, truth_path: str | Path | None = None,
+               clock: Callable[[], float] = time.time) -> World:
+        """This process's view of a cell's shared world (created by ``share`` in ``directory``)."""
+        return cls(config, clock, truth_path, channel=WorldChannel.attach(directory))
+
+    def share(self, directory: str | Path) -> Path:
+        """Move this world's state into a new shared state file in ``directory`` (the cell supervisor,
+        before it starts the twins' processes); returns the directory to ``attach`` to."""
+        with self._lock:
+            if self._channel is not None:
+                raise RuntimeError("world: already shared")
+            self._channel = WorldChannel.create(directory, flange=self._flange, mount=self._mount,
+                                                table_angle=self._table_angle, settled=self._settled,
+                                                time_now=self.clock())
+            self.truth.shared = self.truth.path is not None
+            self._delivered = self._delivered_settled = 0
+            if self._subscribers or self._announce_listeners:
+                self._start_watcher()
+        return Path(directory)
+
+    @property
+    def channel(self) -> WorldChannel | None:
+        return self._channel
+
+    def close(self) -> None:
+        """Stop serving subscribers, leave the shared state, close the ground-truth log."""
+        self._stop_watcher()
+        if self._channel is not None:
+            self._channel.close()
+        self.truth.close()
 
     # ----------------------------------------------------------------------------- randomness
     def rng(self, stream: str) -> np.random.Generator:
@@ -185,93 +286,165 @@ class World:
 
     # ----------------------------------------------------------------------------- setters
     def set_flange_pose(self, flange_pose: np.ndarray, *, settled: bool = True, source: str = "robot") -> WorldState:
-        """Set the true flange pose ``T_B_F`` (4×4, or a UR pose (6,))."""
-        pose = np.asarray(flange_pose, dtype=float)
-        pose = pose6_to_matrix(pose) if pose.shape == (6,) else pose
-        with self._lock:
-            self._flange = pose.copy()
-            self._settled = settled
-            return self._publish(source)
+        """Set the true flange pose ``T_B_F`` (4×4, or a UR pose (6,)).
+
+        Returns once every subscriber has seen the new state; for a settled state that includes
+        the subscribers of the cell's other processes (the camera renderer), at most
+        ``ack_timeout`` seconds.
+        """
+        return self._update(source, flange=_matrix(flange_pose), settled=settled)
 
     def mount_on_robot(self) -> WorldState:
-        with self._lock:
-            self._mount = "robot"
-            return self._publish("mount")
+        return self._update("mount", mount="robot")
 
     def mount_on_table(self, axis: Axis) -> WorldState:
         if axis not in AXES:
             raise ValueError(f"table axis must be one of 'x', 'y', 'z', got {axis!r}")
-        with self._lock:
-            self._mount = f"table:{axis}"
-            return self._publish("mount")
+        return self._update("mount", mount=f"table:{axis}")
 
     def set_table_angle(self, angle: float, *, settled: bool = True) -> WorldState:
-        with self._lock:
-            self._table_angle = float(angle)
-            self._settled = settled
-            return self._publish("table")
+        return self._update("table", table_angle=float(angle), settled=settled)
+
+    def announce(self, *, flange_pose: np.ndarray | None = None, table_angle: float | None = None) -> None:
+        """Say what is expected to settle next (a hint, not truth): a robot that has planned a move
+        announces its final attained flange pose, so the camera twin can render it ahead of time."""
+        flange = None if flange_pose is None else _matrix(flange_pose)
+        if self._channel is not None:
+            self._channel.write_hint(flange=flange, table_angle=table_angle)
+            self._channel.wake_others()
+            return
+        expected = self._expected_state(flange, table_angle)
+        for callback in list(self._announce_listeners):
+            callback(expected)
 
     # ----------------------------------------------------------------------------- readers
     @property
     def mount(self) -> str:
-        return self._mount
+        return self._record().mount
 
     def flange_pose(self) -> np.ndarray:
-        with self._lock:
-            return self._flange.copy()
+        return self._record().flange.copy()
 
     def table_angle(self) -> float:
-        return self._table_angle
+        return self._record().table_angle
 
     def opr_in_m(self) -> np.ndarray:
         """True pose of the OPR in M, ``T_M_O``."""
-        with self._lock:
-            return self._opr_in_m_locked()
+        record = self._record()
+        return self._opr_in_m(record.mount, record.flange, record.table_angle)
 
     def tool_in_m(self) -> np.ndarray:
         """True pose of the end-effector measuring point in M, ``T_M_E``."""
-        with self._lock:
-            return invert(self.base_to_m) @ self._flange @ self.true_tool
+        return self._m_to_base @ self._record().flange @ self.true_tool
 
     def state(self) -> WorldState:
-        with self._lock:
-            return self._snapshot()
+        record = self._record()
+        return self._state_of(record, self.clock())
 
     # ----------------------------------------------------------------------------- subscribers
     def subscribe(self, callback: Callable[[WorldState], None]) -> None:
-        """``callback(state)`` runs synchronously, under the world's lock, on every change: a twin
-        that reports "move done" after ``set_flange_pose`` returns knows every subscriber (the
-        renderer) has seen the pose."""
+        """``callback(state)`` on every change.
+
+        A change made in this process calls it synchronously, under the world's lock; a change
+        made by another process of the cell calls it on this process's watcher thread (when
+        several changes came at once, with the latest; marked settled if a settled one was among
+        them). Either way a settled change is only complete once every callback has returned.
+        """
         with self._lock:
             self._subscribers.append(callback)
+            if self._channel is not None:
+                self._start_watcher()
 
     def unsubscribe(self, callback: Callable[[WorldState], None]) -> None:
         with self._lock:
             if callback in self._subscribers:
                 self._subscribers.remove(callback)
+            if not self._subscribers and not self._announce_listeners:
+                self._stop_watcher()
+
+    def on_announce(self, callback: Callable[[WorldState], None]) -> None:
+        """``callback(expected)`` for every ``announce`` (in any process): the state expected next."""
+        with self._lock:
+            self._announce_listeners.append(callback)
+            if self._channel is not None:
+                self._start_watcher()
+
+    def remove_announce_listener(self, callback: Callable[[WorldState], None]) -> None:
+        with self._lock:
+            if callback in self._announce_listeners:
+                self._announce_listeners.remove(callback)
+            if not self._subscribers and not self._announce_listeners:
+                self._stop_watcher()
 
     # ----------------------------------------------------------------------------- internals
-    def _opr_in_m_locked(self) -> np.ndarray:
-        if self._mount == "robot":
-            return invert(self.base_to_m) @ self._flange @ self.true_opr_mount
-        axis = self.true_table_axes[self._mount.split(":")[1]]
-        return make_transform(rotvec_to_matrix(axis * self._table_angle))
+    def _record(self) -> StateRecord:
+        if self._channel is not None:
+            return self._channel.read()
+        with self._lock:
+            return StateRecord(self._seq, self.clock(), self._settled, self._mount, self._flange.copy(),
+                               self._table_angle, self._last_settled)
 
-    def _snapshot(self) -> WorldState:
+    def _opr_in_m(self, mount: str, flange: np.ndarray, table_angle: float) -> np.ndarray:
+        if mount == "robot":
+            return self._m_to_base @ flange @ self.true_opr_mount
+        axis = self.true_table_axes[mount.split(":")[1]]
+        return make_transform(rotvec_to_matrix(axis * table_angle))
+
+    def _state_of(self, record: StateRecord, when: float | None = None) -> WorldState:
         return WorldState(
-            seq=self._seq,
-            time=self.clock(),
-            settled=self._settled,
-            mount=self._mount,
-            flange_pose=self._flange.copy(),
-            table_angle=self._table_angle,
-            opr_in_m=self._opr_in_m_locked(),
-            tool_in_m=invert(self.base_to_m) @ self._flange @ self.true_tool,
+            seq=record.seq,
+            time=record.time if when is None else when,
+            settled=record.settled,
+            mount=record.mount,
+            flange_pose=record.flange.copy(),
+            table_angle=record.table_angle,
+            opr_in_m=self._opr_in_m(record.mount, record.flange, record.table_angle),
+            tool_in_m=self._m_to_base @ record.flange @ self.true_tool,
         )
 
-    def _publish(self, source: str) -> WorldState:
-        self._seq += 1
-        state = self._snapshot()
+    def _expected_state(self, flange: np.ndarray | None, table_angle: float | None) -> WorldState:
+        record = self._record()
+        flange = record.flange if flange is None else flange
+        angle = record.table_angle if table_angle is None else float(table_angle)
+        return self._state_of(StateRecord(record.seq, self.clock(), True, record.mount, flange, angle,
+                                          record.last_settled))
+
+    def _update(self, source: str, *, flange: np.ndarray | None = None, mount: str | None = None,
+                table_angle: float | None = None, settled: bool | None = None) -> WorldState:
+        channel = self._channel
+        if channel is None:
+            with self._lock:
+                if flange is not None:
+                    self._flange = flange.copy()
+                if mount is not None:
+                    self._mount = mount
+                if table_angle is not None:
+                    self._table_angle = table_angle
+                if settled is not None:
+                    self._settled = settled
+                self._seq += 1
+                if self._settled:
+                    self._last_settled = self._seq
+                state = self._state_of(self._record(), self.clock())
+                self._log(state, source)
+                for callback in list(self._subscribers):
+                    callback(state)
+                return state
+        with self._lock:  # one publisher of this process at a time keeps local delivery in order
+            record = channel.write(flange=flange, mount=mount, table_angle=table_angle, settled=settled,
+                                   time_now=self.clock())
+            state = self._state_of(record)
+            self._log(state, source)
+            self._deliver(state, record.last_settled)
+            channel.wake_others()
+        if state.settled:
+            late = channel.wait_for_acks(state.seq, self.ack_timeout)
+            if late:
+                self.truth.record("late_subscribers", seq=state.seq, time=self.clock(), pids=late,
+                                  waited=self.ack_timeout)
+        return state
+
+    def _log(self, state: WorldState, source: str) -> None:
         if state.settled:
             self.truth.record(
                 "pose",
@@ -284,9 +457,61 @@ class World:
                 opr_in_m=pose_record(state.opr_in_m),
                 tool_in_m=pose_record(state.tool_in_m),
             )
-        for callback in list(self._subscribers):
-            callback(state)
-        return state
+
+    def _deliver(self, state: WorldState, last_settled: int) -> None:
+        """Run this process's subscribers once per new state (shared mode), then acknowledge it."""
+        with self._deliver_lock:
+            if state.seq > self._delivered:
+                if not state.settled and last_settled > self._delivered_settled:
+                    # A settled state was overtaken before we woke: what it set is still true now.
+                    state = replace(state, settled=True)
+                self._delivered = state.seq
+                if state.settled:
+                    self._delivered_settled = state.seq
+                for callback in list(self._subscribers):
+                    callback(state)
+            if self._slot is not None and self._channel is not None:
+                self._channel.ack(self._slot, self._delivered)
+
+    def _start_watcher(self) -> None:
+        if self._watcher is not None or self._channel is None:
+            return
+        channel = self._channel
+        self._slot = channel.claim_slot()
+        wake_ups = WakeUps(channel.wake_path(self._slot))
+        self._watcher_stop.clear()
+        self._watcher = threading.Thread(target=self._watch, args=(channel, wake_ups), name="world-watcher",
+                                         daemon=True)
+        self._watcher.start()
+
+    def _stop_watcher(self) -> None:
+        watcher, self._watcher = self._watcher, None
+        if watcher is None:
+            return
+        self._watcher_stop.set()
+        if watcher is not threading.current_thread():
+            watcher.join(5.0)
+        if self._slot is not None and self._channel is not None and not self._channel.closed:
+            self._channel.release_slot(self._slot)
+        self._slot = None
+
+    def _watch(self, channel: WorldChannel, wake_ups: WakeUps) -> None:
+        last_hint = channel.read_hint().id
+        try:
+            while not self._watcher_stop.is_set():
+                wake_ups.wait(0.2)  # woken by a publisher; the timeout only guards against a lost wake-up
+                if self._watcher_stop.is_set():
+                    break
+                hint = channel.read_hint()
+                if hint.id != last_hint:
+                    last_hint = hint.id
+                    expected = self._expected_state(hint.flange, hint.table_angle)
+                    for callback in list(self._announce_listeners):
+                        callback(expected)
+                record = channel.read()
+                self._deliver(self._state_of(record), record.last_settled)
+        finally:
+            wake_ups.close()
 
     def describe(self) -> dict[str, Any]:
         """Nominal and true constants, for the ground-truth log and for tests."""
@@ -306,6 +531,11 @@ class World:
 def pose_record(transform: np.ndarray) -> dict[str, list[float]]:
     """Translation (m) and Euler angles (alpha, theta, gamma; rad, R = Rz Ry Rx) of a 4×4."""
     return {"t": transform[:3, 3].tolist(), "euler": matrix_to_euler(transform[:3, :3]).tolist()}
+
+
+def _matrix(pose: np.ndarray) -> np.ndarray:
+    pose = np.asarray(pose, dtype=float)
+    return pose6_to_matrix(pose) if pose.shape == (6,) else pose.copy()
 
 
 def _tilted_axis(index: int, rng: np.random.Generator, std: float) -> np.ndarray:

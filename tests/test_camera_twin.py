@@ -1,5 +1,7 @@
 """Camera file twin, SimCamera and CameraTriplet without pypylon."""
 
+import time
+
 import cv2
 import numpy as np
 import pytest
@@ -36,7 +38,7 @@ def test_file_twin_writes_the_settled_pose_before_the_setter_returns(world, benc
         state = world.set_flange_pose(_moved(world, [0.01, 0.02, 0.0]))
         for name, path in twin.paths.items():
             on_disk = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-            expected = twin.renderer.render(name, state.opr_in_m, seq=state.seq)
+            expected = twin.renderer.render(name, state.opr_in_m, seq=twin.frames_written)
             np.testing.assert_array_equal(on_disk, expected)
         frames = world.truth.entries("frames")
         assert frames[-1]["seq"] == state.seq
@@ -54,6 +56,32 @@ def test_file_twin_writes_the_settled_pose_before_the_setter_returns(world, benc
     seq = len(world.truth.entries("frames"))
     world.set_flange_pose(_moved(world, [0.0, 0.0, 0.01]))
     assert len(world.truth.entries("frames")) == seq  # unsubscribed
+
+
+def test_an_announced_pose_is_rendered_ahead_and_put_in_place_when_it_settles(world, bench, tmp_path):
+    twin = CameraFileTwin(world, bench, tmp_path)
+    twin.start()
+    try:
+        target = _moved(world, [0.004, -0.002, 0.001])
+        world.announce(flange_pose=target)
+        deadline = time.monotonic() + 20.0
+        while not list(tmp_path.glob(".x.ahead-*.bmp")) or twin._ahead_frames.state != "done":
+            assert time.monotonic() < deadline, "the announced frames were never rendered"
+            time.sleep(0.01)
+        state = world.set_flange_pose(target)
+        assert twin.stats() == {"frames_written": 2, "announced": 1, "rendered_ahead": 1}
+        for name, path in twin.paths.items():
+            expected = twin.renderer.render(name, state.opr_in_m, seq=twin.frames_written)
+            np.testing.assert_array_equal(cv2.imread(str(path), cv2.IMREAD_GRAYSCALE), expected)
+        # An announcement that does not come true is not used, and its frames do not stay behind.
+        world.announce(flange_pose=_moved(world, [0.01, 0.0, 0.0]))
+        state = world.set_flange_pose(_moved(world, [0.0, 0.01, 0.0]))
+        assert twin.stats()["announced"] == 1 and twin.frames_written == 3
+        expected = twin.renderer.render("z", state.opr_in_m, seq=3)
+        np.testing.assert_array_equal(cv2.imread(str(twin.paths["z"]), cv2.IMREAD_GRAYSCALE), expected)
+    finally:
+        twin.stop()
+    assert not list(tmp_path.glob(".*.bmp"))
 
 
 def test_sim_camera_implements_the_protocol_and_follows_the_world(world, bench):

@@ -14,6 +14,7 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
 import psutil
 import pytest
 import yaml
@@ -209,3 +210,146 @@ def test_faults_injected_through_the_control_channel_fire_in_the_running_cell(tm
         assert cell.mount_on_table("y") == "table:y"
         assert cell.mount_on_robot() == "robot"
         assert cell.ping() == "pong"  # the cell is still healthy after all that
+
+
+# ------------------------------------------------------------------------------ one process per twin
+def _gone(pid: int) -> bool:
+    try:
+        return psutil.Process(pid).status() == psutil.STATUS_ZOMBIE
+    except psutil.NoSuchProcess:
+        return True
+
+
+def _wait_until(predicate, timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        assert time.monotonic() < deadline, what
+        time.sleep(0.05)
+
+
+def test_each_twin_runs_in_its_own_process_and_none_outlives_a_killed_supervisor(tmp_path):
+    cell = SimCell(seed=6, directory=tmp_path / "cell")
+    cell.start()
+    try:
+        status = cell.status()
+        pids = {name: entry["pid"] for name, entry in status.items()}
+        assert set(pids) == {"cameras", "robot", "rotary_table", "interferometer"}
+        assert all(entry["alive"] for entry in status.values())
+        assert len(set(pids.values())) == 4 and cell.supervisor_pid not in pids.values()
+        supervisor = psutil.Process(cell.supervisor_pid)
+        assert {p.pid for p in supervisor.children()} == set(pids.values())
+        robot_host = cell.endpoints["robot"]["host"]
+        supervisor.kill()  # SIGKILL: no clean-up code runs in the supervisor
+        _wait_until(lambda: all(_gone(pid) for pid in pids.values()), 30.0,
+                    f"twins outlived their supervisor: {[n for n, pid in pids.items() if not _gone(pid)]}")
+        _wait_until(lambda: not any(_listening(robot_host, port) for port in UR_PORTS), 10.0,
+                    "the robot twin's ports stayed open")
+    finally:
+        cell.stop()
+
+
+def test_a_twin_that_dies_is_reported_by_name_and_the_others_carry_on(tmp_path):
+    with SimCell(seed=7, directory=tmp_path / "cell") as cell:
+        robot_pid = cell.status()["robot"]["pid"]
+        psutil.Process(robot_pid).kill()
+        _wait_until(lambda: not cell.status()["robot"]["alive"], 20.0, "the dead robot twin was not noticed")
+        assert cell.status()["robot"]["exitcode"] == -signal.SIGKILL
+        with pytest.raises(ControlError, match="the robot twin is not running"):
+            cell.client().call("device", device="robot", command="state")
+        with pytest.raises(ControlError, match="the robot twin is not running"):
+            cell.client().call("inject_fault", device="robot", kind="protective_stop")
+        died = cell.truth("twin_died")
+        assert [(e["twin"], e["pid"]) for e in died] == [("robot", robot_pid)]
+        # The rest of the cell still works: the table, the cameras, the world and its subscribers.
+        assert cell.ping() == "pong"
+        assert cell.mount_on_table("x") == "table:x"
+        assert cell.forward("cameras", "stats")["frames_written"] >= 2
+        assert {n for n, e in cell.status().items() if e["alive"]} == {"cameras", "rotary_table", "interferometer"}
+
+
+def test_instrument_sim_names_a_twin_that_died(tmp_path):
+    process = subprocess.Popen(
+        [sys.executable, "-m", "procedures.cli", "sim", "--json", "--seed", "8", "--directory", str(tmp_path)],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=Path(__file__).resolve().parents[1],
+    )
+    try:
+        lines: list[str] = []
+        reader = threading.Thread(target=lambda: lines.append(process.stdout.readline()), daemon=True)
+        reader.start()
+        reader.join(90)
+        assert lines and lines[0].strip(), "no endpoints printed"
+        control = json.loads(lines[0])["control"]
+        client = ControlClient(control["host"], control["port"], timeout=10)
+        interferometer_pid = client.call("status")["interferometer"]["pid"]
+        psutil.Process(interferometer_pid).kill()
+        errors: list[str] = []
+
+        def read_errors():
+            for line in process.stderr:
+                errors.append(line)
+
+        threading.Thread(target=read_errors, daemon=True).start()
+        _wait_until(lambda: any("interferometer twin" in line and "died" in line for line in errors), 20.0,
+                    f"no line names the dead twin; stderr: {errors}")
+        process.send_signal(signal.SIGTERM)
+        assert process.wait(timeout=60) == 0
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait(10)
+        process.stdout.close()
+
+
+def test_a_blocking_move_returns_once_the_cameras_show_its_final_pose(tmp_path):
+    rtde_control = pytest.importorskip("rtde_control")
+    with SimCell(seed=9, directory=tmp_path / "cell", time_scale=4.0) as cell:
+        host = cell.endpoints["robot"]["host"]
+        control = rtde_control.RTDEControlInterface(host)
+        try:
+            start = control.getForwardKinematics()
+            for step in range(6):
+                target = [start[0] + 0.004 * (step % 2), start[1], start[2] + 0.003 * (step % 3), *start[3:]]
+                assert control.moveL(target, 0.25, 1.2)
+                # 'done' came after the attained pose reached every twin: the frames on disk show it.
+                frames = cell.truth("frames", last=1)[0]
+                pose = cell.truth("pose", last=1)[0]
+                assert frames["seq"] == pose["seq"]
+                truth = np.asarray(cell.true_opr_in_m())
+                np.testing.assert_allclose(frames["opr_in_m"]["t"], truth[:3, 3], atol=1e-12)
+            # Every end pose was announced when the move was planned, so the cameras could render it
+            # while the arm moved (how many were ready in time depends on the machine's load).
+            assert cell.forward("cameras", "stats")["announced"] == 6
+        finally:
+            control.disconnect()
+
+
+def test_the_robot_moves_to_another_address_when_its_ports_were_taken_meanwhile(tmp_path, monkeypatch):
+    """Another cell may bind the address between the supervisor's check and the robot process's bind."""
+    import sim_devices.cell as cell_module
+
+    taken = cell_module.free_loopback_host(first=230, last=240)
+    holders = []
+    for port in UR_PORTS:
+        holder = socket.socket()
+        holder.bind((taken, port))
+        holder.listen(1)
+        holders.append(holder)
+    picks: list[str] = []
+    real = cell_module.free_loopback_host
+
+    def pick(first: int = 2, last: int = 254, exclude: tuple[str, ...] = ()) -> str:
+        picks.append(taken if not picks else real(first=231, last=250, exclude=exclude))
+        return picks[-1]
+
+    monkeypatch.setattr(cell_module, "free_loopback_host", pick)
+    host = CellHost(str(tmp_path / "cell"), seed=2)
+    try:
+        endpoints = host.start()
+        assert picks[0] == taken and endpoints["robot"]["host"] == picks[-1] != taken
+        assert host.status()["robot"]["alive"]
+        station = yaml.safe_load(Path(endpoints["station"]).read_text())
+        assert station["devices"]["robot"]["host"] == picks[-1]
+    finally:
+        host.stop()
+        for holder in holders:
+            holder.close()

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from drivers import DeviceConnectionError, DeviceTimeout, MotionRefused, ProtocolError, SettingsError
+from drivers import DeviceConnectionError, DeviceTimeout, MotionRefused, SettingsError
 from drivers.robot import (
     EmergencyStop,
     MotionEnvelope,
@@ -184,8 +184,6 @@ def dashboard_answer(host: str, command: str) -> str:
 
 def test_identity_is_read_from_the_controller(twin, robot):
     model = dashboard_answer(twin.endpoints["host"], "get robot model")
-    if model.startswith("could not understand"):
-        pytest.skip(f"the UR twin does not answer 'get robot model' yet ({model!r}); it lands with the sim branch")
     config = twin.call("describe")["config"]
     assert robot.identity() == RobotIdentity(
         manufacturer="Universal Robots",  # from the dashboard's greeting
@@ -197,19 +195,13 @@ def test_identity_is_read_from_the_controller(twin, robot):
 
 def test_set_payload_is_set_on_the_controller_and_read_back(twin, robot):
     """``set_payload`` returns only once the controller's RTDE payload outputs report the new values."""
-    try:
-        robot.set_payload(1.25, [0.004, -0.002, 0.035])
-    except ProtocolError as error:
-        ignored = [e for e in twin.call("events") if "command 17 " in e and "not emulated" in e]
-        if not ignored:
-            raise
-        # The adapter saw that the payload was not applied; the twin's setPayload lands with the sim branch.
-        assert "reports 0.0000 kg at [0.000, 0.000, 0.000] mm, not 1.2500 kg" in error.cause
-        pytest.skip(f"the UR twin does not emulate setPayload yet ({ignored[-1]!r})")
+    robot.set_payload(1.25, [0.004, -0.002, 0.035])
+    state = twin.call("state")
+    assert state["payload"] == pytest.approx(1.25)
+    assert state["payload_cog"] == pytest.approx([0.004, -0.002, 0.035], abs=1e-9)
     robot.set_payload(0.8, [0.0, 0.0, 0.0])  # a zero centre of gravity is set too (not "keep the current one")
     state = twin.call("state")
-    if "payload" in state:
-        assert state["payload"] == pytest.approx(0.8) and state["payload_cog"] == pytest.approx([0, 0, 0], abs=1e-8)
+    assert state["payload"] == pytest.approx(0.8) and state["payload_cog"] == pytest.approx([0, 0, 0], abs=1e-8)
 
 
 def test_set_payload_refuses_bad_values_before_sending(twin, robot):

@@ -52,7 +52,8 @@ def test_stored_runs_are_listed_shown_reported_and_exported(runs_dir, tmp_path, 
     runs = _stored(runs_dir)
     assert main(["runs", "--runs-dir", str(runs_dir)]) == 0
     listing = capsys.readouterr().out.splitlines()
-    assert [line.split()[0] for line in listing] == [r["id"][:12] for r in runs]
+    assert listing[0].split()[0] == "RUN"  # the header
+    assert [line.split()[0] for line in listing[1:]] == [r["id"][:12] for r in runs]
     for run in runs:
         assert main(["show", run["id"], "--runs-dir", str(runs_dir)]) == 0
         shown = capsys.readouterr().out
@@ -116,3 +117,34 @@ def test_paused_runs_resume_to_the_end_without_touching_committed_samples(runs_d
             assert all(results["points"][p]["n"] == run["parameters"]["cycles"] for p in results["order"])
         else:
             assert Path(results["record_path"]).is_file() and finished["calibration_record_id"] == results["record_id"]
+
+
+def _rows(db: Path, query: str) -> list[tuple]:
+    with sqlite3.connect(db) as conn:
+        return conn.execute(query).fetchall()
+
+
+@pytest.mark.parametrize("written_by", ["5786d73", "before schema versions"])
+def test_an_older_store_is_migrated_in_place_keeping_every_row(runs_dir, written_by):
+    from procedures._store_schema import LATEST, MIGRATIONS
+
+    db = runs_dir / "runs.sqlite"
+    if written_by != "5786d73":  # the store as the code just before schema versions left it: two more tables
+        with sqlite3.connect(db) as conn:
+            conn.executescript(MIGRATIONS[1].sqlite)
+    found = 1 if written_by == "5786d73" else 2
+    events = _rows(db, "SELECT rowid, run_id, time, kind, message, data FROM events ORDER BY rowid")
+    samples = _rows(db, "SELECT * FROM samples ORDER BY run_id, step_index")
+    runs = _rows(db, "SELECT * FROM runs ORDER BY id")
+    with RunStore(runs_dir) as store:
+        versions = _rows(db, "SELECT version, description FROM schema_version ORDER BY version")
+        assert [v for v, _ in versions] == list(range(found, LATEST + 1))
+        assert "written before schema versions" in versions[0][1]
+        assert _rows(db, "SELECT id, run_id, time, kind, message, data FROM events ORDER BY id") == events
+        assert _rows(db, "SELECT * FROM samples ORDER BY run_id, step_index") == samples
+        assert [row[:len(runs[0])] for row in _rows(db, "SELECT * FROM runs ORDER BY id")] == runs
+        assert _rows(db, "SELECT COUNT(*) FROM runs WHERE robot_serial IS NOT NULL") == [(0,)]  # older runs: NULL
+        run_id = store.list_runs()[0]["id"]
+        assert [e["message"] for e in store.events(run_id)] == [e[4] for e in events if e[1] == run_id]
+    with RunStore(runs_dir):  # opened again: nothing applied twice
+        assert len(_rows(db, "SELECT version FROM schema_version")) == LATEST - found + 1

@@ -15,6 +15,7 @@ from sim_devices._transforms import pose6_to_matrix
 from sim_devices.cell import free_loopback_host
 from sim_devices.ur import _kinematics as kin
 from sim_devices.ur._motion import Profile
+from tests.rtde_probe import RTDEProbe
 
 rtde_control = pytest.importorskip("rtde_control")
 rtde_receive = pytest.importorskip("rtde_receive")
@@ -216,9 +217,10 @@ def test_two_twins_in_parallel_on_their_own_addresses():
         second.stop()
 
 
-def test_protective_stop_makes_send_command_fail(twin, clients):
+def test_protective_stop_makes_send_command_fail_and_unlocks_only_after_5_s(twin, clients):
     control, receive = clients
     start = np.array(receive.getActualTCPPose())
+    armed_at = time.monotonic()  # the stop happens after this, mid-move
     twin.call("arm_fault", kind="protective_stop", at=0.3)
     assert not control.moveL((start + [0, 0, 0.1, 0, 0, 0]).tolist(), 0.25, 1.2)
     # The control client saw the stop; this receive client's stream may lag on a loaded machine.
@@ -228,46 +230,199 @@ def test_protective_stop_makes_send_command_fail(twin, clients):
     assert start[2] < z < start[2] + 0.1 - 0.01  # halted mid-move, well short of the target
     dashboard = dashboard_client.DashboardClient(twin.endpoints["host"])
     dashboard.connect()
-    assert dashboard.safetystatus() == "Safetystatus: PROTECTIVE_STOP"
-    dashboard.unlockProtectiveStop()
-    dashboard.disconnect()
+    try:
+        assert dashboard.safetystatus() == "Safetystatus: PROTECTIVE_STOP"
+        # PolyScope refuses for 5 s after the stop; ur_rtde turns the refusal into an exception.
+        with pytest.raises(RuntimeError, match="Cannot unlock protective stop until 5s after occurrence"):
+            dashboard.unlockProtectiveStop()
+        assert receive.isProtectiveStopped()
+        deadline = time.monotonic() + 15.0
+        while True:
+            try:
+                dashboard.unlockProtectiveStop()
+                break
+            except RuntimeError:
+                assert time.monotonic() < deadline, "the protective stop never became unlockable"
+                time.sleep(0.25)
+        assert time.monotonic() - armed_at >= 5.0  # never before 5 s after the stop
+    finally:
+        dashboard.disconnect()
     wait_for(lambda: not receive.isProtectiveStopped())
     assert control.reuploadScript()
     wait_for(control.isProgramRunning)
     assert control.moveL(start.tolist(), 0.25, 1.2)
 
 
-def test_stream_timestamp_advances_while_the_control_thread_is_busy():
-    """A real controller keeps streaming its clock; the twin's control thread can be busy for a
-    while (publishing a settled pose makes the cell render three frames), and a frozen timestamp
-    would make the driver declare the connection lost."""
-    import threading
+def test_dashboard_identity_answers_through_the_real_client(twin):
+    dashboard = dashboard_client.DashboardClient(twin.endpoints["host"])
+    dashboard.connect()
+    try:
+        assert dashboard.getRobotModel() == "UR5"
+        assert dashboard.getSerialNumber() == "20235500123"
+        assert dashboard.polyscopeVersion() == "5.15.0.0"
+        assert dashboard.isInRemoteControl()
+    finally:
+        dashboard.disconnect()
 
-    from sim_devices.faults import FaultPlan
-    from sim_devices.ur._config import URTwinConfig
-    from sim_devices.ur._controller import URController
-    from sim_devices.ur._servers import InputOwnership, RTDEHandler
+
+def test_set_payload_reaches_the_rtde_outputs_and_the_truth_log(twin, clients):
+    control, receive = clients
+    assert control.setPayload(1.25, [0.0, 0.01, 0.06])
+    wait_for(lambda: receive.getPayload() == pytest.approx(1.25))
+    np.testing.assert_allclose(receive.getPayloadCog(), [0.0, 0.01, 0.06])
+    assert control.setPayload(0.8, [])  # no centre of gravity: the script keeps the current one
+    wait_for(lambda: receive.getPayload() == pytest.approx(0.8))
+    np.testing.assert_allclose(receive.getPayloadCog(), [0.0, 0.01, 0.06])
+    logged = twin.call("truth", event="payload")
+    assert [(e["mass"], e["cog"]) for e in logged[-2:]] == [(1.25, [0.0, 0.01, 0.06]), (0.8, [0.0, 0.01, 0.06])]
+    # Joint currents carry the arm's weight (shoulder and elbow hold it up); the force estimate is noise.
+    current = np.abs(receive.getActualCurrent())
+    assert current[1] > 0.5 and current[2] > 0.1
+    assert 0.0 < np.linalg.norm(receive.getActualTCPForce()[:3]) < 5.0
+    assert control.setPayload(0.0, [])
+
+
+def test_rtde_timestamp_counts_controller_seconds_not_simulated_ones(twin, clients):
+    _, receive = clients
+    first, wall = receive.getTimestamp(), time.monotonic()
+    time.sleep(1.0)
+    elapsed_stamp, elapsed_wall = receive.getTimestamp() - first, time.monotonic() - wall
+    # The module's twin runs motion 20× faster; the controller's clock does not.
+    assert 0.5 * elapsed_wall < elapsed_stamp < 1.5 * elapsed_wall
+    assert abs(first / 0.002 - round(first / 0.002)) < 1e-6  # on the 2 ms cycle grid
+
+
+def test_upper_range_registers_with_the_real_clients():
+    process = start_twin(seed=4)
+    host = process.endpoints["host"]
+    flags = (rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT
+             | rtde_control.RTDEControlInterface.FLAG_UPPER_RANGE_REGISTERS)
+    try:
+        receive = rtde_receive.RTDEReceiveInterface(host, -1.0, [], False, True)
+        control = rtde_control.RTDEControlInterface(host, 500.0, flags)
+        try:
+            assert any("register offsets int 24, float 24" in e for e in process.call("events"))
+            start = np.array(receive.getActualTCPPose())
+            target = start + [0.0, 0.02, -0.01, 0.0, 0.0, 0.0]
+            assert control.moveL(target.tolist(), 0.25, 1.2)
+            np.testing.assert_allclose(receive.getActualTCPPose(), target, atol=1e-9)
+            assert control.moveL(start.tolist(), 0.25, 1.2, True)  # async: progress in register 26
+            wait_for(lambda: control.getAsyncOperationProgress() < 0)
+            wait_for(lambda: np.allclose(receive.getActualTCPPose(), start, atol=1e-9))
+            np.testing.assert_allclose(control.getForwardKinematics(), receive.getActualTCPPose(), atol=1e-9)
+        finally:
+            control.disconnect()
+            receive.disconnect()
+    finally:
+        process.stop()
+
+
+def test_the_pose_read_right_after_a_blocking_movel_is_the_final_one():
+    """60 blocking moves at ×10. Once the receive client (a separate connection) holds any package
+    from the end of a move on, its pose is the final one: 'done' goes out only after the arm is at
+    rest, on the same cycle grid. A read can only be older if the client itself has not yet read the
+    packages the controller sent (its timestamp then shows it)."""
+    process = start_twin(seed=5, time_scale=10.0)
+    host = process.endpoints["host"]
+    try:
+        receive = rtde_receive.RTDEReceiveInterface(host)
+        control = rtde_control.RTDEControlInterface(host)
+        try:
+            start = np.array(receive.getActualTCPPose())
+            rng = np.random.default_rng(5)
+            visits = len(process.call("visits"))
+            reads = []
+            for _ in range(60):
+                target = start + np.concatenate([rng.uniform(-0.02, 0.02, 3), [0.0, 0.0, 0.0]])
+                assert control.moveL(target.tolist(), 0.25, 1.2)
+                while True:  # pose and timestamp of one package (the client updates them separately)
+                    before, pose, after = receive.getTimestamp(), receive.getActualTCPPose(), receive.getTimestamp()
+                    if before == after:
+                        break
+                reads.append((before, pose))
+            ends = process.call("visits", since=visits)
+            assert len(ends) == 60
+            stale, lagging = [], []
+            for index, ((stamp, pose), end) in enumerate(zip(reads, ends)):
+                if np.allclose(pose, end["commanded_tcp"], atol=1e-9):
+                    continue
+                (stale if stamp >= end["end_timestamp"] - 1e-9 else lagging).append(index)
+            assert not stale, f"moves {stale} read a pose that was not the final one after the move ended"
+            assert len(lagging) < 60, "the receive client never caught up"  # client-side lag, if any, is rare
+        finally:
+            control.disconnect()
+            receive.disconnect()
+    finally:
+        process.stop()
+
+
+def test_every_rtde_package_comes_from_one_controller_cycle(twin, clients):
+    """Packages on the 2 ms grid, none skipped unless the twin says so; in each, the actual and target
+    poses are the forward kinematics of that package's joints, and 'done' only comes with the final pose."""
+    control, receive = clients
+    names = ["timestamp", "actual_q", "target_q", "actual_TCP_pose", "target_TCP_pose", "output_int_register_0"]
+    skipped_before = twin.call("state")["skipped_cycles"]
+    start = np.array(receive.getActualTCPPose())
+    target = start + [0.05, 0.0, 0.02, 0.0, 0.0, 0.0]
+    with RTDEProbe(twin.endpoints["host"], names) as probe:
+        time.sleep(0.1)
+        assert control.moveL(target.tolist(), 0.25, 1.2)
+        assert control.moveL(start.tolist(), 0.25, 1.2)
+        time.sleep(0.1)
+        packages = [p.values for p in probe.take()]
+    stamps = np.array([p["timestamp"] for p in packages])
+    slots = np.round(stamps / 0.002)
+    np.testing.assert_allclose(stamps, slots * 0.002, atol=1e-9)
+    assert np.all(np.diff(slots) >= 1)
+    missing = int(np.sum(np.diff(slots) - 1))
+    assert missing == 0 or twin.call("state")["skipped_cycles"] > skipped_before, f"{missing} slots skipped"
+    moving = 0
+    for p in packages:
+        for joints, pose in (("actual_q", "actual_TCP_pose"), ("target_q", "target_TCP_pose")):
+            np.testing.assert_allclose(kin.forward(p[joints]), pose6_to_matrix(p[pose]), atol=1e-9)
+        moving += not np.allclose(p["actual_q"], p["target_q"], atol=1e-12)
+    assert moving > 10  # the servos lag during the moves
+    finals = {tuple(np.round(target, 9)), tuple(np.round(start, 9))}
+    for p in packages:
+        if p["output_int_register_0"] == 2:  # 'done with the command'
+            assert tuple(np.round(p["actual_TCP_pose"], 9)) in finals
+
+
+def test_the_stream_keeps_its_grid_while_a_settled_pose_waits_for_a_slow_subscriber():
+    """A world subscriber that takes 0.3 s (a slow renderer) delays 'done', never the 500 Hz stream."""
+    from sim_devices.ur import URControllerTwin
+    from sim_devices.ur._motion import Motion
     from sim_devices.world import World, WorldConfig
 
-    controller = URController(World(WorldConfig(seed=0)), URTwinConfig(time_scale=1.0), FaultPlan())
-    timestamp = RTDEHandler(controller, InputOwnership())._getter("timestamp")
-    busy, release = threading.Event(), threading.Event()
+    world = World(WorldConfig(seed=0))
+    slow = []
 
-    def hold_the_controller():
-        with controller.lock:
-            busy.set()
-            release.wait(5.0)
+    def renderer(state):
+        if state.settled:
+            time.sleep(0.3)
+            slow.append(time.monotonic())
 
-    holder = threading.Thread(target=hold_the_controller)
-    holder.start()
+    world.subscribe(renderer)
+    twin = URControllerTwin(world, free_address(), {"time_scale": 10.0})
+    twin.start()
     try:
-        assert busy.wait(5.0)
-        first = timestamp(controller.snapshot)
-        time.sleep(0.05)
-        assert timestamp(controller.snapshot) >= first + 0.04
+        controller = twin.controller
+        with RTDEProbe(twin.host, ["timestamp", "actual_TCP_pose"]) as probe:
+            time.sleep(0.05)
+            target = controller.tcp_pose.copy()
+            target[2, 3] += 0.01
+            motion = controller.start_motion(
+                lambda t, q, tcp: Motion("linear", t, q, tcp, speed=0.25, accel=1.2, target_pose=target))
+            assert controller.wait_motion(motion, lambda: True)
+            done_at = time.monotonic()
+            packages = probe.take()
+        assert slow and done_at >= slow[-1]  # done only after the subscriber had the settled pose
+        during = [p for p in packages if done_at - 0.3 <= p.arrived <= done_at]
+        slots = np.round(np.array([p.values["timestamp"] for p in during]) / 0.002)
+        assert len(during) > 50  # the stream went on meanwhile, slot after slot:
+        assert np.all(np.diff(slots) == 1) or controller.skipped_cycles > 0
     finally:
-        release.set()
-        holder.join(5.0)
+        twin.stop()
 
 
 def test_dashboard_answers_like_polyscope():

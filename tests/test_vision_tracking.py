@@ -9,7 +9,8 @@ back to the full search — and say why — when the prior is lost.
 import numpy as np
 import pytest
 
-from instrument.vision import CrossNotFound, locate_cross, locate_crosses
+from instrument.vision import CoarseLine, CrossNotFound, VisionWorkspace, locate_cross, locate_crosses
+from instrument.vision._bands import BAND_HALF_WIDTH, _kept_sections
 from tests.synthetic_cross import render_cross
 
 SHAPE = (480, 640)  # rows, cols
@@ -148,3 +149,56 @@ def test_several_frames_at_once_give_what_each_frame_gives_alone():
         assert got.angle == pytest.approx(alone.angle, abs=1e-12)
     assert [together[n].search for n in ("tracked", "lost", "12-bit", "full")] == [
         "tracked", "fallback", "tracked", "full"]
+
+
+def test_a_cross_within_the_band_of_its_prior_lines_is_measured_there_as_precisely():
+    """Small motion (≤ 2 px: the band on the prior's lines is kept) and larger motion (the band is
+    laid again where the stripes are): both as accurate as the full search, against the truth."""
+    for motion, seed in (((0.8, -1.1), 30), ((4.5, 3.0), 32)):
+        prior = locate_cross(_frame((300.0, 250.0), seed=seed)[0])
+        img, truth = _frame((300.0 + motion[0], 250.0 + motion[1]), angle=0.101, seed=seed + 1)
+        tracked, full = locate_cross(img, prior=prior), locate_cross(img)
+        assert tracked.search == "tracked"
+        assert np.hypot(*(tracked.center - truth.center)) < 0.02
+        # a band laid on the prior's line (≤ 2 px off) or on the stripe: sub-millipixel agreement
+        assert np.hypot(*(tracked.center - full.center)) < 2e-3
+        assert abs(tracked.angle - full.angle) < 2e-5
+
+
+def test_a_workspace_changes_nothing_but_the_memory_reused():
+    """Results with a reused VisionWorkspace equal those with fresh memory, and no result refers
+    to the workspace (later calls through it leave earlier results as they were)."""
+    frames = [_frame((300.0 + 2 * k, 250.0 - k), angle=0.1 + 0.002 * k, seed=40 + k)[0] for k in range(4)]
+    workspace = VisionWorkspace()
+    kept, fresh, prior_kept, prior_fresh = [], [], None, None
+    for img in frames:
+        prior_kept = locate_cross(img, prior=prior_kept, workspace=workspace)
+        prior_fresh = locate_cross(img, prior=prior_fresh)
+        kept.append((prior_kept, prior_kept.center.copy(), prior_kept.horizontal.point.copy()))
+        fresh.append(prior_fresh)
+    for (m, center, point), f in zip(kept, fresh):
+        np.testing.assert_array_equal(m.center, f.center)
+        assert m.angle == f.angle and m.search == f.search
+        np.testing.assert_array_equal(m.center, center)  # untouched by the later calls
+        np.testing.assert_array_equal(m.horizontal.point, point)
+    assert workspace.nbytes > 0
+
+
+def test_band_sections_found_from_the_crossing_points_equal_the_elementwise_test():
+    """The kept sections of a band (outside the crossing zone, line in the frame) computed from
+    the analytic crossing points equal a test of every section, for random and degenerate lines."""
+    rng = np.random.default_rng(3)
+    for _ in range(3000):
+        n, across = (int(v) for v in rng.integers(16, 2500, 2))
+        vertical = bool(rng.integers(2))
+        slope = float(rng.choice([rng.uniform(-1, 1), 0.0, 0.5, -0.25, 1e-300]))
+        other_slope = float(rng.choice([rng.uniform(-1, 1), 0.0, 0.5]))
+        intercept = float(rng.choice([rng.uniform(-100, across + 100), rng.integers(-50, across + 50) + 0.5]))
+        line = CoarseLine(vertical, intercept, slope, 0)
+        other = CoarseLine(not vertical, float(rng.uniform(-100, n + 100)), other_slope, 0)
+        s = np.arange(n)
+        position = line.at(s)
+        reach = BAND_HALF_WIDTH * (1.0 + abs(other_slope)) + BAND_HALF_WIDTH
+        keep = (np.abs(s - other.at(position)) > reach) & (position > -BAND_HALF_WIDTH)
+        keep &= position < across - 1 + BAND_HALF_WIDTH
+        np.testing.assert_array_equal(_kept_sections(n, across, line, other), s[keep])

@@ -1,6 +1,12 @@
+import os
+import signal
+import threading
+import time
+
 import numpy as np
 import pytest
 
+from sim_devices import TwinProcess
 from sim_devices._transforms import (
     euler_to_matrix,
     matrix_to_euler,
@@ -92,3 +98,124 @@ def test_bad_config_names_the_field():
 
 def test_rot_x_is_right_handed():
     np.testing.assert_allclose(rot_x(np.pi / 2) @ [0, 1, 0], [0, 0, 1], atol=1e-15)
+
+
+# ------------------------------------------------------------------------------ the shared world of a cell
+def _shared_world(tmp_path, seed=3):
+    world = World(WorldConfig(seed=seed), truth_path=tmp_path / "truth.jsonl")
+    world_dir = str(world.share(tmp_path / "world"))
+    return world, world_dir
+
+
+def _wait_for(predicate, timeout=10.0):
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        assert time.monotonic() < deadline, "condition not reached in time"
+        time.sleep(0.01)
+
+
+def _moved(world, dx):
+    pose = world.flange_pose()
+    pose[:3, 3] += dx
+    return pose
+
+
+def test_a_settled_change_returns_only_after_every_process_s_subscribers_saw_it(tmp_path):
+    world, world_dir = _shared_world(tmp_path)
+    try:
+        with TwinProcess("tests._world_hosts:WorldSubscriber",
+                         {"world_dir": world_dir, "seed": 3, "delay": 0.2,
+                          "truth_path": str(tmp_path / "truth.jsonl")}) as other:
+            # The same seed gives the same constants in every process; the state comes from the file.
+            np.testing.assert_array_equal(other.call("opr_in_m"), world.opr_in_m())
+            state = world.set_flange_pose(_moved(world, [0.01, 0.0, 0.0]))
+            returned = time.monotonic()
+            seen = {entry["seq"]: entry for entry in other.call("seen")}
+            assert state.seq in seen and seen[state.seq]["settled"]
+            assert seen[state.seq]["ended"] <= returned  # its (slow) subscriber had finished
+            np.testing.assert_array_equal(seen[state.seq]["flange"], state.flange_pose)
+
+            moving = world.set_flange_pose(_moved(world, [0.0, 0.01, 0.0]), settled=False)
+            returned = time.monotonic()  # a moving pose does not wait for anyone
+            _wait_for(lambda: any(e["seq"] == moving.seq for e in other.call("seen")))
+            assert [e for e in other.call("seen") if e["seq"] == moving.seq][0]["ended"] > returned
+
+            # A change made over there is seen here, and both processes' truth lands in one log.
+            remote_seq = other.call("move", delta=[0.0, 0.0, 0.005])
+            assert world.state().seq == remote_seq
+            np.testing.assert_allclose(world.flange_pose()[:3, 3], moving.flange_pose[:3, 3] + [0.0, 0.0, 0.005])
+            logged = world.truth.entries("pose")
+            assert [e["seq"] for e in logged] == [state.seq, remote_seq]
+            assert [e["source"] for e in logged] == ["robot", "subscriber"]
+    finally:
+        world.close()
+
+
+def test_a_settled_state_overtaken_before_a_subscriber_woke_reaches_it_as_settled(tmp_path):
+    world, world_dir = _shared_world(tmp_path)
+    try:
+        with TwinProcess("tests._world_hosts:WorldSubscriber",
+                         {"world_dir": world_dir, "seed": 3, "delay": 0.3}) as other:
+            world.set_flange_pose(_moved(world, [0.001, 0.0, 0.0]), settled=False)  # keeps it busy for 0.3 s
+            settled_done = threading.Event()
+            publisher = threading.Thread(
+                target=lambda: (world.set_flange_pose(_moved(world, [0.002, 0.0, 0.0])), settled_done.set()))
+            publisher.start()
+            _wait_for(lambda: world.state().settled)
+            latest = world.set_flange_pose(_moved(world, [0.003, 0.0, 0.0]), settled=False)  # overtakes it
+            publisher.join(15.0)
+            assert settled_done.is_set()
+            deliveries = other.call("seen")
+            # The subscriber never saw the settled state itself, but the newer one, marked settled:
+            # whatever the settled change set is still true in it.
+            assert [(e["seq"], e["settled"]) for e in deliveries][-1] == (latest.seq, True)
+    finally:
+        world.close()
+
+
+def test_announcements_reach_the_other_processes(tmp_path):
+    world, world_dir = _shared_world(tmp_path)
+    try:
+        with TwinProcess("tests._world_hosts:WorldSubscriber", {"world_dir": world_dir, "seed": 3}) as other:
+            expected = _moved(world, [0.0, 0.0, 0.02])
+            world.announce(flange_pose=expected)
+            _wait_for(lambda: other.call("announced"))
+            np.testing.assert_array_equal(other.call("announced")[-1], expected)
+            assert world.state().seq == 0  # a hint, not a change of the truth
+    finally:
+        world.close()
+
+
+def test_a_dead_subscriber_does_not_hold_up_a_settled_change(tmp_path):
+    world, world_dir = _shared_world(tmp_path)
+    world.ack_timeout = 60.0
+    try:
+        other = TwinProcess("tests._world_hosts:WorldSubscriber", {"world_dir": world_dir, "seed": 3, "delay": 60})
+        other.start()
+        try:
+            os.kill(other.pid, signal.SIGKILL)
+            _wait_for(lambda: other.poll_exit() is not None)
+            started = time.monotonic()
+            world.set_flange_pose(_moved(world, [0.01, 0.0, 0.0]))
+            assert time.monotonic() - started < 30.0  # not the 60 s a live subscriber would take
+            assert not world.truth.entries("late_subscribers")
+        finally:
+            other.stop()
+    finally:
+        world.close()
+
+
+def test_readers_never_see_a_half_written_state(tmp_path):
+    world, world_dir = _shared_world(tmp_path)
+    try:
+        with TwinProcess("tests._world_hosts:WorldWriter", {"world_dir": world_dir, "seed": 3}) as writer:
+            poses = [np.array(p) for p in writer.endpoints["poses"]]
+            _wait_for(lambda: writer.call("writes") > 100)
+            seqs = []
+            for _ in range(100_000):  # without the seqlock, a few of these reads come out torn
+                state = world.state()
+                assert any(np.array_equal(state.flange_pose, p) for p in poses), "a torn read"
+                seqs.append(state.seq)
+            assert np.all(np.diff(seqs) >= 0) and seqs[-1] > seqs[0]
+    finally:
+        world.close()

@@ -76,8 +76,10 @@ class ClockModel:
 
     def to_robot(self, t_camera):
         """Camera time(s) → robot time(s), s (scalar in, float out; array in, array out)."""
+        if isinstance(t_camera, float):  # one timestamp per frame in a stream: plain float arithmetic
+            return float(self.robot_reference + self.rate * (t_camera - self.camera_reference))
         value = self.robot_reference + self.rate * (np.asarray(t_camera, dtype=float) - self.camera_reference)
-        return float(value) if np.ndim(value) == 0 else value
+        return float(value) if value.ndim == 0 else value
 
 
 def _paired(camera_times, robot_times) -> tuple[np.ndarray, np.ndarray]:

@@ -2,7 +2,8 @@
 
 Main entry points :func:`locate_cross` (one frame; with ``prior=`` the last result, it tracks the
 cross instead of searching the whole frame) and :func:`locate_crosses` (several frames at once, e.g.
-the three cameras of one trigger); the building blocks are public too:
+the three cameras of one trigger; a stream passes the same :class:`VisionWorkspace` to every call);
+the building blocks are public too:
 :func:`igcf_centers` (vectorised IGCF over many cross-sections), :func:`fit_line_bisquare`
 (robust line fit) and :func:`find_stripes` (coarse stripe detection).
 """
@@ -12,6 +13,7 @@ from instrument.vision._igcf import SectionCentres, half_window_for_width, igcf_
 from instrument.vision._linefit import LineFit, fit_line_bisquare
 from instrument.vision._locate import locate_cross, locate_crosses
 from instrument.vision._types import CrossMeasurement, CrossNotFound, StripeLine
+from instrument.vision._workspace import VisionWorkspace
 
 __all__ = [
     "CoarseLine",
@@ -21,6 +23,7 @@ __all__ = [
     "LineFit",
     "SectionCentres",
     "StripeLine",
+    "VisionWorkspace",
     "find_stripes",
     "fit_line_bisquare",
     "half_window_for_width",

@@ -56,7 +56,7 @@ def _median_in_place(x):
     x.partition(k)
     if n % 2:
         return float(x[k])
-    return 0.5 * float(x[k] + x[:k].max())
+    return 0.5 * float(x[k] + np.maximum.reduce(x[:k]))
 
 
 def _weighted_line(u, v, w):
@@ -123,9 +123,9 @@ def bisquare_line(independent, dependent, *, tuning=BISQUARE_TUNING, tol=1e-7, m
     """
     u_raw = np.asarray(independent, dtype=float)
     v = np.ascontiguousarray(dependent, dtype=float)
-    u0 = u_raw.mean()
+    u0 = np.add.reduce(u_raw) / len(u_raw)  # u_raw.mean(), without its Python-level wrapper
     u = u_raw - u0  # centring keeps the 2×2 normal equations well conditioned
-    lever = max(np.abs(u).max(), 1e-12)
+    lever = max(np.maximum.reduce(np.abs(u)), 1e-12)
     # Every weighted fit needs the same five sums: one matrix–vector product per iteration.
     moments = np.empty((5, len(u)))
     moments[0] = 1.0
@@ -133,11 +133,11 @@ def bisquare_line(independent, dependent, *, tuning=BISQUARE_TUNING, tol=1e-7, m
     moments[2] = v
     np.multiply(u, u, out=moments[3])
     np.multiply(u, v, out=moments[4])
-    a, b = _line_from_sums(*moments.sum(axis=1))
-    weights = np.ones_like(u)
-    residual = np.empty_like(u)
-    magnitude = np.empty_like(u)
-    scale_floor = 1e-12 * (1.0 + np.abs(v).max())
+    a, b = _line_from_sums(*np.add.reduce(moments, axis=1))
+    weights = np.ones(len(u))
+    residual = np.empty(len(u))
+    magnitude = np.empty(len(u))
+    scale_floor = 1e-12 * (1.0 + np.maximum.reduce(np.abs(v)))
     iterations, converged = 0, False
     for iterations in range(1, max_iter + 1):  # noqa: B007 (the count is returned)
         np.multiply(u, b, out=residual)
@@ -160,5 +160,5 @@ def bisquare_line(independent, dependent, *, tuning=BISQUARE_TUNING, tol=1e-7, m
             converged = True
             break
     r_perp = (v - (a + b * u)) / np.hypot(1.0, b)
-    residual_rms = float(np.sqrt((weights @ (r_perp * r_perp)) / weights.sum()))
+    residual_rms = float(np.sqrt((weights @ (r_perp * r_perp)) / np.add.reduce(weights)))
     return LineFit(float(a - b * u0), float(b), weights, residual_rms, iterations, converged)

@@ -8,14 +8,16 @@ prior is lost, the full search runs and the result says so.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import replace
 
 import numpy as np
 
-from instrument.vision._bands import CrossJob, measure_cross, measure_crosses
+from instrument.vision._bands import CrossJob
 from instrument.vision._detect import find_stripes
-from instrument.vision._track import TRACK_SEARCH_PX, lost_after_fit, reacquire, track_cross
+from instrument.vision._fine import PriorLost, measure_crosses
+from instrument.vision._track import TRACK_SEARCH_PX, lost_after_fit, prior_lines
 from instrument.vision._types import CrossMeasurement, CrossNotFound
 
 MIN_SECTIONS = 30  # fewer usable cross-sections than this: the stripe is too short to fit
@@ -59,6 +61,7 @@ def locate_cross(
     half_window=None,
     min_sections=MIN_SECTIONS,
     search_px=TRACK_SEARCH_PX,
+    workspace=None,
 ) -> CrossMeasurement:
     """Locate a cross-line laser's cross in one camera image to sub-pixel precision (method.md §2).
 
@@ -86,6 +89,9 @@ def locate_cross(
     search_px : int, optional
         Half-width of the band searched around each prior line, px (default 24): the largest
         stripe motion between two frames that tracking follows.
+    workspace : VisionWorkspace, optional
+        Scratch memory reused from call to call (a stream keeps one; see ``VisionWorkspace``);
+        None = fresh memory for this call. The result never refers to it.
 
     Returns
     -------
@@ -104,28 +110,12 @@ def locate_cross(
         No cross, only one stripe, more than one cross, or a stripe too short to fit; the message
         says which.
     """
-    saturation = _check_image(img, saturation)
-    flat = np.ascontiguousarray(img).ravel()
-    lost_reason = None
-    if prior is not None:
-        _check_search(search_px, img.shape)
-        tracked = track_cross(flat, img.shape, saturation, prior, half_window, min_sections, int(search_px))
-        if isinstance(tracked, CrossMeasurement):
-            return tracked
-        lost_reason = tracked
-    detection = find_stripes(img, saturation, threshold)
-    measured = measure_cross(
-        flat,
-        img.shape,
-        detection.horizontal,
-        detection.vertical,
-        detection.background,
-        saturation,
-        half_window,
-        min_sections,
-        search="full" if prior is None else "fallback",
-    )
-    return measured if lost_reason is None else replace(measured, lost_reason=lost_reason)
+    result = locate_crosses({"frame": img}, saturation, None if prior is None else {"frame": prior},
+                            threshold=threshold, half_window=half_window, min_sections=min_sections,
+                            search_px=search_px, workspace=workspace)["frame"]
+    if isinstance(result, CrossNotFound):
+        raise result
+    return result
 
 
 def locate_crosses(
@@ -137,6 +127,7 @@ def locate_crosses(
     half_window=None,
     min_sections=MIN_SECTIONS,
     search_px=TRACK_SEARCH_PX,
+    workspace=None,
 ) -> dict[str, CrossMeasurement | CrossNotFound]:
     """:func:`locate_cross` on several frames at once — the three cameras of one trigger.
 
@@ -150,7 +141,7 @@ def locate_crosses(
         As for ``locate_cross``; one level for all frames, or one per name.
     priors : mapping name → CrossMeasurement or None, optional
         Each frame's prior (the previous result for that camera); a missing name or None: full search.
-    threshold, half_window, min_sections, search_px
+    threshold, half_window, min_sections, search_px, workspace
         As for ``locate_cross``.
 
     Returns
@@ -175,27 +166,26 @@ def locate_crosses(
         level = _check_image(img, levels.get(name))
         flat = np.ascontiguousarray(img).ravel()
         prior = priors.get(name)
-        if prior is not None:
+        if prior is not None:  # the fine stage starts from the prior's lines and checks them (``_track``)
             _check_search(search_px, img.shape)
-            lines = reacquire(flat, img.shape, prior, int(search_px))
-            if not isinstance(lines, str):
-                jobs[name] = CrossJob(flat, img.shape, lines[0], lines[1], lines[2], level, "tracked")
-                continue
-            lost[name] = lines
-        job = _full_search_job(img, flat, level, threshold, "full" if prior is None else "fallback")
+            horizontal, vertical = prior_lines(prior)
+            jobs[name] = CrossJob(flat, img.shape, horizontal, vertical, math.nan, level, "tracked", int(search_px))
+            continue
+        job = _full_search_job(img, flat, level, threshold, "full")
         if isinstance(job, CrossNotFound):
             results[name] = job
         else:
             jobs[name] = job
-    measured = dict(zip(jobs, measure_crosses(list(jobs.values()), half_window, min_sections)))
+    measured = dict(zip(jobs, measure_crosses(list(jobs.values()), half_window, min_sections, workspace)))
     for name, result in measured.items():
         if jobs[name].search == "tracked":
-            reason = lost_after_fit(result, priors[name])
-            if reason is not None:  # rare: the fine fit shows the prior lost; search this frame again
+            reason = result.reason if isinstance(result, PriorLost) else lost_after_fit(result, priors[name])
+            if reason is not None:  # the prior is lost: search this frame again
                 lost[name] = reason
-                result = _full_search(images[name], jobs[name], threshold, half_window, min_sections)
+                result = _full_search(images[name], jobs[name], threshold, half_window, min_sections, workspace)
         if isinstance(result, CrossMeasurement) and lost.get(name) is not None:
             result = replace(result, lost_reason=lost[name])
+        assert not isinstance(result, PriorLost)  # a lost prior was replaced by the full search above
         results[name] = result
     return {name: results[name] for name in names}
 
@@ -208,9 +198,11 @@ def _full_search_job(img, flat, level, threshold, search) -> CrossJob | CrossNot
     return CrossJob(flat, img.shape, detection.horizontal, detection.vertical, detection.background, level, search)
 
 
-def _full_search(img, tracked: CrossJob, threshold, half_window, min_sections) -> CrossMeasurement | CrossNotFound:
+def _full_search(img, tracked: CrossJob, threshold, half_window, min_sections,
+                 workspace) -> CrossMeasurement | CrossNotFound:
     job = _full_search_job(img, tracked.flat, tracked.saturation, threshold, "fallback")
     if isinstance(job, CrossNotFound):
         return job
-    (result,) = measure_crosses([job], half_window, min_sections)
+    (result,) = measure_crosses([job], half_window, min_sections, workspace)
+    assert not isinstance(result, PriorLost)  # a full search has no prior to lose
     return result

@@ -1,11 +1,15 @@
 """The tracking path of ``locate_cross``: a prior (the last result) replaces the coarse detection.
 
 While the robot moves, consecutive frames show the cross a few pixels (at most a few tens) from
-where it was. Instead of block-averaging and Hough-transforming the whole frame, each stripe is
-re-acquired in a band of ±``search_px`` around its prior line, on about ``REACQUIRE_SECTIONS``
-cross-sections spread along it: the brightest pixel of each sampled section, then a trimmed line fit. That coarse
-line feeds the same band → IGCF → bisquare pipeline as the full search (``_bands``), so the result
-is as precise as the full search's.
+where it was. Instead of block-averaging and Hough-transforming the whole frame, the fine stage's
+bands (±``BAND_HALF_WIDTH`` px, ``_bands``) are laid around the prior's two lines and checked
+there (:func:`prior_band_verdicts`): the brightest pixel of every section of the band must show the
+stripe on one straight line. A stripe within ``MAX_BAND_OFFSET`` of its prior line is measured in
+that band as it is — one read of the frame, no separate search; one further off is measured in a
+band laid around the line its brightest pixels show; one not cleanly in the band is searched for
+within ±``search_px`` of its prior line (:func:`reacquire_stripe`: ~``REACQUIRE_SECTIONS`` sampled
+cross-sections, brightest pixel of each, a trimmed line fit). Either way the band → IGCF → bisquare
+pipeline is the full search's, so the result is as precise.
 
 The prior is **lost** (and the caller falls back to the full search) when, for either stripe:
 
@@ -18,17 +22,24 @@ The prior is **lost** (and the caller falls back to the full search) when, for e
 3. the fine fit fails (too few usable sections), or keeps fewer than ``MIN_SECTIONS_KEPT`` of the
    prior's sections — the stripe was only partly found.
 
-A second cross appearing in the frame is not looked for while tracking (the full search reports
-it); it is caught only if it disturbs the fit enough to trip one of the rules above.
+Rules 1–2 are those of the ±``search_px`` search; the check of the band around the prior line
+applies the same two (without the upper-quartile rule) and, when they fail, hands the stripe to
+that search rather than declaring it lost. A second cross appearing in the frame is not looked for
+while tracking (the full search reports it); it is caught only if it disturbs the fit enough to trip
+one of the rules above.
 """
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
-from instrument.vision._bands import CrossJob, kind, measure_crosses
+from instrument.vision._bands import BAND_HALF_WIDTH, SAMPLE_STRIDE, BandPlan, Bands, kind
 from instrument.vision._detect import CoarseLine
+from instrument.vision._igcf import BrightestRuns
 from instrument.vision._linefit import _median
+from instrument.vision._strided import across_view
 from instrument.vision._types import CrossMeasurement, CrossNotFound
 
 TRACK_SEARCH_PX = 24  # default half-width of the re-acquisition band around each prior line, px
@@ -42,27 +53,30 @@ INLIER_PX = 2.0
 MIN_SECTIONS_KEPT = 0.5
 EDGE_MARGIN = 3  # a brightest pixel this close to the search band's edge does not count
 EDGE_SAMPLE_ROWS = 4  # rows at each end of the search band that sample its background
+MAX_BAND_OFFSET = 2.0  # px: a stripe this close to its prior line is measured in the band around that line
 
 
 def prior_lines(prior) -> tuple[CoarseLine, CoarseLine]:
     """The two stripe lines of a prior ``CrossMeasurement`` as coarse lines (horizontal, vertical)."""
     try:
-        h_point, h_dir = np.asarray(prior.horizontal.point, float), np.asarray(prior.horizontal.direction, float)
-        v_point, v_dir = np.asarray(prior.vertical.point, float), np.asarray(prior.vertical.direction, float)
+        h_point, h_dir, v_point, v_dir = (
+            np.asarray(vector, float) for vector in (prior.horizontal.point, prior.horizontal.direction,
+                                                     prior.vertical.point, prior.vertical.direction))
     except AttributeError:
         raise TypeError(
             f"prior must be the CrossMeasurement of the previous frame (or None), got {type(prior).__name__}"
         ) from None
-    if h_point.shape != (2,) or v_point.shape != (2,) or not np.all(np.isfinite([*h_point, *v_point])):
+    if h_point.shape != (2,) or v_point.shape != (2,) or h_dir.shape != (2,) or v_dir.shape != (2,):
         raise ValueError("prior: the stripe lines' points must be finite (x, y) pixel coordinates")
-    if not (abs(h_dir[0]) > 1e-9 and abs(v_dir[1]) > 1e-9):
+    (hx, hy), (hdx, hdy), (vx, vy), (vdx, vdy) = (h_point.tolist(), h_dir.tolist(), v_point.tolist(), v_dir.tolist())
+    if not all(map(math.isfinite, (hx, hy, vx, vy))):
+        raise ValueError("prior: the stripe lines' points must be finite (x, y) pixel coordinates")
+    if not (abs(hdx) > 1e-9 and abs(vdy) > 1e-9):
         raise ValueError("prior: a stripe direction is degenerate (horizontal stripe with no x part, or "
                          "vertical stripe with no y part)")
-    h_slope = float(h_dir[1] / h_dir[0])  # y = a + b·x
-    v_slope = float(v_dir[0] / v_dir[1])  # x = a + b·y
-    horizontal = CoarseLine(False, float(h_point[1] - h_slope * h_point[0]), h_slope, 0)
-    vertical = CoarseLine(True, float(v_point[0] - v_slope * v_point[1]), v_slope, 0)
-    return horizontal, vertical
+    h_slope = hdy / hdx  # y = a + b·x
+    v_slope = vdx / vdy  # x = a + b·y
+    return CoarseLine(False, hy - h_slope * hx, h_slope, 0), CoarseLine(True, vx - v_slope * vy, v_slope, 0)
 
 
 def _reacquire(flat, shape, line: CoarseLine, other: CoarseLine, search: int) -> tuple[CoarseLine, float] | str:
@@ -87,7 +101,7 @@ def _reacquire(flat, shape, line: CoarseLine, other: CoarseLine, search: int) ->
     first, last = min(base[0], base[-1]), max(base[0], base[-1]) + width - 1  # base is monotonic in s
     if first >= 0 and last < across_len:  # the usual case: the whole search band lies in the frame
         inside = None
-        values = flat.take(np.add.outer(base * step + s * stride, np.arange(width) * step))
+        values = across_view(flat, width, step)[base * step + s * stride]
         sample = np.concatenate([values[:, :EDGE_SAMPLE_ROWS].ravel(), values[:, -EDGE_SAMPLE_ROWS:].ravel()])
     else:
         across = base[:, None] + np.arange(width)[None, :]
@@ -143,17 +157,60 @@ def _line(u: np.ndarray, v: np.ndarray) -> tuple[float, float]:
     return v_mean - slope * u_mean, slope
 
 
-def reacquire(flat, shape, prior, search) -> tuple[CoarseLine, CoarseLine, float] | str:
-    """Both stripes near ``prior``'s lines: (horizontal, vertical, background), or why the prior is lost."""
-    h_prior, v_prior = prior_lines(prior)
-    horizontal = _reacquire(flat, shape, h_prior, v_prior, search)
-    if isinstance(horizontal, str):
-        return horizontal
-    vertical = _reacquire(flat, shape, v_prior, h_prior, search)
-    if isinstance(vertical, str):
-        return vertical
-    (h_line, h_background), (v_line, v_background) = horizontal, vertical
-    return h_line, v_line, 0.5 * (h_background + v_background)
+def reacquire_stripe(flat, shape, line: CoarseLine, other: CoarseLine, search: int) -> CoarseLine | str:
+    """The stripe near ``line`` (within ±``search`` px) to about a pixel, or why the prior is lost."""
+    found = _reacquire(flat, shape, line, other, search)
+    return found if isinstance(found, str) else found[0]
+
+
+def prior_band_verdicts(bands: Bands, runs: BrightestRuns, plans: list[BandPlan], lines: list[CoarseLine]):
+    """Whether each band, laid around its stripe's prior line, holds the stripe.
+
+    Per stripe: True — the brightest pixels of its sections lie on one line within
+    ``MAX_BAND_OFFSET`` of the band's centre (measure the stripe in this band); a ``CoarseLine`` —
+    they lie on one line further off (lay the band around that line); False — the stripe is not
+    cleanly in the band (rules 1–2 of the module docstring fail there: search ±search_px).
+    Every ``SAMPLE_STRIDE``-th section is looked at (a few hundred per stripe, as many as the
+    ±search_px search samples): their brightest pixels place the line to a few hundredths of a pixel.
+    """
+    layout = bands.segments
+    sampled, counts, stripe = layout.sampled, layout.sample_counts, layout.sample_stripe
+    first = layout.sample_starts[:-1]
+    middle_along = np.array([0.5 * (p.along[0] + p.along[-1]) for p in plans])
+    u = np.concatenate([p.along[::SAMPLE_STRIDE] for p in plans]) - middle_along[stripe]
+    middle = runs.middle[sampled]
+    # the run's middle across the stripe, from the prior line (base + BAND_HALF_WIDTH is its rounding)
+    offset = middle + np.concatenate([p.base[::SAMPLE_STRIDE] - p.position[::SAMPLE_STRIDE] for p in plans])
+    standing = runs.peak[sampled] - bands.background[sampled] >= MIN_PEAK_SIGMAS * bands.noise[stripe]
+    standing &= np.abs(middle - BAND_HALF_WIDTH) <= BAND_HALF_WIDTH - EDGE_MARGIN
+    found = np.add.reduceat(standing, first)
+    a, b = _lines_per_stripe(first, u, offset, standing)
+    inliers = standing & (np.abs(offset - (a[stripe] + b[stripe] * u)) <= INLIER_PX)
+    n_inliers = np.add.reduceat(inliers, first)
+    if np.logical_or.reduce(n_inliers < found):  # refit without the stray peaks (hot pixels, a reflection)
+        a, b = _lines_per_stripe(first, u, offset, inliers)
+    verdicts: list[bool | CoarseLine] = []
+    for j, line in enumerate(lines):
+        if found[j] < max(4, MIN_FOUND_FRACTION * counts[j]) or n_inliers[j] < MIN_INLIER_FRACTION * found[j]:
+            verdicts.append(False)
+        elif abs(a[j]) + abs(b[j]) * 0.5 * (plans[j].along[-1] - plans[j].along[0]) <= MAX_BAND_OFFSET:
+            verdicts.append(True)
+        else:  # across = line + a + b·(along − middle)
+            verdicts.append(CoarseLine(line.vertical, line.intercept + a[j] - b[j] * middle_along[j],
+                                       line.slope + b[j], int(found[j])))
+    return verdicts
+
+
+def _lines_per_stripe(first, u, v, use):
+    """Least-squares v = a + b·u of each stripe's points where ``use`` (stripe j's points start at
+    ``first[j]``): (a, b) arrays."""
+    w = use.astype(float)
+    wu, wv = w * u, w * v
+    sw, su, sv, suu, suv = (np.add.reduceat(x, first) for x in (w, wu, wv, wu * u, wu * v))
+    det = sw * suu - su * su
+    b = np.where(det > 0, (sw * suv - su * sv) / np.where(det > 0, det, 1.0), 0.0)
+    a = np.where(sw > 0, (sv - b * su) / np.maximum(sw, 1.0), 0.0)
+    return a, b
 
 
 def lost_after_fit(measured: CrossMeasurement | CrossNotFound, prior) -> str | None:
@@ -167,17 +224,3 @@ def lost_after_fit(measured: CrossMeasurement | CrossNotFound, prior) -> str | N
         if new.sections < MIN_SECTIONS_KEPT * old.sections:
             return f"{name} stripe: only {new.sections} usable sections, the prior had {old.sections}"
     return None
-
-
-def track_cross(flat, shape, saturation, prior, half_window, min_sections, search) -> CrossMeasurement | str:
-    """The cross found near ``prior``'s lines, or the reason the prior is lost (a string)."""
-    lines = reacquire(flat, shape, prior, search)
-    if isinstance(lines, str):
-        return lines
-    horizontal, vertical, background = lines
-    job = CrossJob(flat, shape, horizontal, vertical, background, saturation, "tracked")
-    (measured,) = measure_crosses([job], half_window, min_sections)
-    reason = lost_after_fit(measured, prior)
-    if reason is not None or isinstance(measured, CrossNotFound):
-        return reason or str(measured)
-    return measured

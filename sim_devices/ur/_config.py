@@ -39,8 +39,24 @@ class URTwinConfig:
     remote_control : bool
         Answer to ``is in remote control`` (the client refuses to connect to a non-loopback
         address that is not in remote control).
+    robot_model : str
+        Answer to the dashboard's ``get robot model`` (PolyScope 5 names the family: ``UR5``).
     control_period : float
-        Wall seconds between controller ticks (motion sampling, fault checks).
+        The controller cycle in wall seconds (0.002: the e-Series' 500 Hz). Every RTDE output
+        package of a cycle is built from that cycle's one controller state.
+    servo_dynamics : bool
+        Model the joint servos (``_servo.py``): ``actual`` lags ``target`` by ``following_lag``
+        during motion and rings down after it; a move is done once the residual is below
+        ``settle_tolerance``. False: an ideal servo (``actual`` = ``target``).
+    servo_frequency, servo_damping, servo_frequency_spread : float
+        Natural frequency (Hz), damping ratio, and the seeded relative spread of the frequency
+        between joints.
+    following_lag : float
+        Seconds by which ``actual`` lags ``target`` at constant speed (following error = lag × speed).
+    settle_tolerance : float
+        Residual joint error (rad) below which a move counts as ended (then ``actual`` = ``target``).
+    protective_stop_unlock_delay : float
+        Wall seconds after a protective stop before the dashboard may unlock it (PolyScope: 5 s).
     world_publish_period : float
         Wall seconds between intermediate (not settled) flange poses sent to the world.
     max_stream_rate : float or None
@@ -60,7 +76,15 @@ class URTwinConfig:
     version: tuple[int, int, int, int] = (5, 15, 0, 0)
     serial_number: str = "20235500123"
     remote_control: bool = True
-    control_period: float = 0.004
+    robot_model: str = "UR5"
+    control_period: float = 0.002
+    servo_dynamics: bool = True
+    servo_frequency: float = 40.0
+    servo_damping: float = 0.8
+    servo_frequency_spread: float = 0.1
+    following_lag: float = 0.001
+    settle_tolerance: float = 1e-6
+    protective_stop_unlock_delay: float = 5.0
     world_publish_period: float = 0.02
     max_stream_rate: float | None = None
     stop_deceleration: float = 10.0
@@ -75,6 +99,12 @@ class URTwinConfig:
         config = cls(**data)
         if not config.time_scale > 0:
             raise ValueError(f"UR twin config: time_scale must be > 0, got {config.time_scale}")
+        if not 0.0005 <= config.control_period <= 0.1:
+            raise ValueError(f"UR twin config: control_period must be 0.5 ms … 100 ms, got {config.control_period}")
+        if config.servo_dynamics and not (config.servo_frequency > 0 and 0 < config.servo_damping < 1
+                                          and config.following_lag >= 0 and config.settle_tolerance > 0):
+            raise ValueError("UR twin config: the servo needs servo_frequency > 0, 0 < servo_damping < 1, "
+                             "following_lag ≥ 0 and settle_tolerance > 0")
         if not str(config.serial_number).isdigit():
             raise ValueError("UR twin config: serial_number must be digits")
         return config

@@ -26,25 +26,27 @@ class IKFailed(ValueError):
     """No joint solution reaches the pose (out of reach or singular)."""
 
 
-def _dh(theta: float, d: float, a: float, alpha: float) -> np.ndarray:
-    ct, st = np.cos(theta), np.sin(theta)
-    ca, sa = np.cos(alpha), np.sin(alpha)
-    return np.array(
-        [
-            [ct, -st * ca, st * sa, a * ct],
-            [st, ct * ca, -ct * sa, a * st],
-            [0.0, sa, ca, d],
-            [0.0, 0.0, 0.0, 1.0],
-        ]
-    )
+_CA, _SA = np.cos(UR5E_ALPHA), np.sin(UR5E_ALPHA)
+
+
+def _dh_all(q) -> np.ndarray:
+    """The six DH link transforms at once (6, 4, 4): one array expression instead of six small ones."""
+    q = np.asarray(q, dtype=float)
+    ct, st = np.cos(q), np.sin(q)
+    links = np.zeros((6, 4, 4))
+    links[:, 0, 0], links[:, 0, 1], links[:, 0, 2], links[:, 0, 3] = ct, -st * _CA, st * _SA, UR5E_A * ct
+    links[:, 1, 0], links[:, 1, 1], links[:, 1, 2], links[:, 1, 3] = st, ct * _CA, -ct * _SA, UR5E_A * st
+    links[:, 2, 1], links[:, 2, 2], links[:, 2, 3] = _SA, _CA, UR5E_D
+    links[:, 3, 3] = 1.0
+    return links
 
 
 def joint_frames(q) -> list[np.ndarray]:
     """Base-frame transforms of frames 0..6 (0 = base, 6 = flange)."""
     frames = [np.eye(4)]
-    t = np.eye(4)
-    for i in range(6):
-        t = t @ _dh(float(q[i]), UR5E_D[i], UR5E_A[i], UR5E_ALPHA[i])
+    t = frames[0]
+    for link in _dh_all(q):
+        t = t @ link
         frames.append(t)
     return frames
 
@@ -66,13 +68,15 @@ def _jacobian(q, tcp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Geometric Jacobian (6×6, [v; ω]) at the TCP, and the TCP transform."""
     frames = joint_frames(q)
     end = frames[-1] @ tcp
-    p = end[:3, 3]
+    stacked = np.array(frames[:6])
+    z = stacked[:, :3, 2]  # joint axes (6, 3)
+    r = end[:3, 3] - stacked[:, :3, 3]  # joint origin → TCP (6, 3)
     jac = np.empty((6, 6))
-    for i in range(6):
-        z = frames[i][:3, 2]
-        o = frames[i][:3, 3]
-        jac[:3, i] = np.cross(z, p - o)
-        jac[3:, i] = z
+    # z × r, written out: np.cross costs more than the rest of the Jacobian for 3-vectors.
+    jac[0] = z[:, 1] * r[:, 2] - z[:, 2] * r[:, 1]
+    jac[1] = z[:, 2] * r[:, 0] - z[:, 0] * r[:, 2]
+    jac[2] = z[:, 0] * r[:, 1] - z[:, 1] * r[:, 0]
+    jac[3:] = z.T
     return jac, end
 
 

@@ -27,23 +27,33 @@ from sim_devices.ur._motion import Motion
 
 REALTIME_COMMANDS = {6, 9, 10, 11, 24, 25, 26, 27, 38, 58, 66, 67, 68, 69, 70, 71}
 COMMAND_NAMES = {
-    1: "moveJ", 2: "moveJ_IK", 3: "moveL", 4: "moveL_FK", 29: "setTcp", 30: "getInverseKinematics(args)",
+    1: "moveJ", 2: "moveJ_IK", 3: "moveL", 4: "moveL_FK", 17: "setPayload", 29: "setTcp",
+    30: "getInverseKinematics(args)",
     31: "triggerProtectiveStop", 33: "stopL", 34: "stopJ", 36: "isPoseWithinSafetyLimits",
     37: "isJointsWithinSafetyLimits", 39: "poseTrans", 40: "getTCPOffset", 43: "getForwardKinematics()",
     44: "getForwardKinematics(args)", 46: "getInverseKinematics()", 47: "isSteady",
     58: "getActualToolFlangePose", 60: "getInverseKinematicsHasSolution()",
-    61: "getInverseKinematicsHasSolution(args)", 255: "stopScript",
+    61: "getInverseKinematicsHasSolution(args)", 65: "setTargetPayload", 255: "stopScript",
 }
 JOINT_LIMIT = 2 * np.pi
+
+
+def register_offset(text: str, kind: str) -> int:
+    """The register offset ur_rtde injected for ``kind`` (``int`` or ``float``), 0 if none.
+
+    The client puts the number AFTER the comment that ends the line, at the start of the next one
+    (``global reg_offset_float = # float register offset⏎24    global reg_offset_int = …``), so
+    the value is the first number after ``=`` once a comment up to the end of the line is skipped.
+    """
+    match = re.search(rf"global\s+reg_offset_{kind}\s*=[ \t]*(?:#[^\n]*\n)?\s*(\d+)", text)
+    return int(match.group(1)) if match else 0
 
 
 def recognise_control_script(text: str) -> tuple[int, int] | None:
     """Register offsets (int, float) if ``text`` is ur_rtde's control script, else None."""
     if "RTDE Control Script" not in text or "def rtde_control" not in text:
         return None
-    int_match = re.search(r"global\s+reg_offset_int\s*=\s*(\d+)", text)
-    float_match = re.search(r"global\s+reg_offset_float\s*=\s*(\d+)", text)
-    return (int(int_match.group(1)) if int_match else 0, int(float_match.group(1)) if float_match else 0)
+    return register_offset(text, "int"), register_offset(text, "float")
 
 
 class ScriptError(RuntimeError):
@@ -160,6 +170,11 @@ class ControlScript:
         try:
             if cmd in (1, 2, 3, 4):
                 self._move(cmd)
+            elif cmd == 17:
+                c.set_payload(self._in_double(0), np.array([self._in_double(k) for k in (1, 2, 3)]))
+            elif cmd == 65:
+                c.set_payload(self._in_double(0), np.array([self._in_double(k) for k in (1, 2, 3)]),
+                              np.array([self._in_double(k) for k in range(4, 10)]))
             elif cmd == 29:
                 c.set_tcp(self._in_vector(0))
             elif cmd in (30, 46):

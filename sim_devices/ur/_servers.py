@@ -20,6 +20,7 @@ from sim_devices.ur._controller import (
     RUNTIME_PLAYING,
     SAFETY_BIT_ESTOP,
     SAFETY_BIT_PROTECTIVE,
+    CycleState,
     URController,
 )
 from sim_devices.ur._fields import INPUT_FIELDS, OUTPUT_FIELDS, Recipe, parse_names
@@ -132,80 +133,167 @@ DASHBOARD_FIXED_REPLIES = {
 }
 
 
-class RTDEHandler:
-    """One RTDE session: version handshake, recipes, start/pause, streaming, input packages."""
+class RTDEConnection:
+    """One RTDE client connection's outgoing side: replies from its handler thread and data packages
+    from the controller's cycle thread go through one buffer under one lock, never blocking either
+    thread (a client that stops reading is dropped once ``MAX_PENDING`` bytes are waiting)."""
 
-    def __init__(self, controller: URController, registry: InputOwnership) -> None:
+    MAX_PENDING = 1 << 20
+
+    def __init__(self, sock: socket.socket) -> None:
+        self.sock = sock
+        self.lock = threading.Lock()
+        self.output: Recipe | None = None
+        self.getters: list[Callable[[dict[str, Any]], object]] = []
+        self.decimation = 1
+        self.started = False
+        self.dead = False
+        self.packages = 0  # data packages handed to the socket (or its queue)
+        self.backlog_peak = 0  # most bytes ever waiting for a client that reads too slowly
+        self._pending = b""
+
+    def reply(self, kind: int, payload: bytes) -> None:
+        """A setup reply (handler thread), in order with the data packages."""
+        with self.lock:
+            self._write(struct.pack(">HB", len(payload) + 3, kind) + payload)
+
+    def offer(self, state: CycleState, send_data: bool) -> None:
+        """The cycle thread: flush what is waiting, then this cycle's data package if one is due."""
+        with self.lock:
+            if self.dead:
+                return
+            if send_data and self.started and self.output is not None and state.cycle % self.decimation == 0:
+                fields = state.fields
+                payload = self.output.pack([get(fields) for get in self.getters])
+                self._write(struct.pack(">HB", len(payload) + 3, U) + payload)
+                self.packages += 1
+            elif self._pending:
+                self._write(b"")
+
+    def _write(self, data: bytes) -> None:
+        self._pending += data
+        try:
+            sent = self.sock.send(self._pending, socket.MSG_DONTWAIT)
+        except BlockingIOError:
+            sent = 0
+        except OSError:
+            self._drop()
+            return
+        self._pending = self._pending[sent:]
+        self.backlog_peak = max(self.backlog_peak, len(self._pending))
+        if len(self._pending) > self.MAX_PENDING:
+            self._drop()
+
+    def _drop(self) -> None:
+        self.dead = True
+        self._pending = b""
+        try:
+            self.sock.shutdown(socket.SHUT_RDWR)
+        except OSError:
+            pass
+
+
+class RTDEStreams:
+    """Every RTDE connection of the twin, fed with each cycle's one ``CycleState`` by the controller."""
+
+    def __init__(self, controller: URController) -> None:
+        self.c = controller
+        self._connections: list[RTDEConnection] = []
+        self._lock = threading.Lock()
+        self.packages = 0
+        controller.add_cycle_listener(self.on_cycle)
+
+    def add(self, connection: RTDEConnection) -> None:
+        with self._lock:
+            self._connections = [*self._connections, connection]
+
+    def remove(self, connection: RTDEConnection) -> None:
+        with self._lock:
+            self._connections = [c for c in self._connections if c is not connection]
+
+    def stats(self) -> list[dict[str, int]]:
+        """Per connection: data packages sent and the peak backlog (bytes a slow reader left queued)."""
+        return [{"packages": c.packages, "backlog_peak": c.backlog_peak, "started": int(c.started)}
+                for c in self._connections]
+
+    def on_cycle(self, state: CycleState) -> None:
+        c = self.c
+        connections = self._connections
+        streaming = any(conn.started for conn in connections)
+        now = time.monotonic()
+        send_data = now >= c.stream_stall_until
+        if send_data and streaming:
+            stall = c.faults.take(FaultKind.STALL)
+            if stall is not None:
+                seconds = float(stall.params.get("seconds", 3.0))
+                c.stream_stall_until = now + seconds
+                c.log(f"RTDE stream stalled for {seconds} s (injected)")
+                send_data = False
+        for connection in connections:
+            connection.offer(state, send_data)
+
+
+class RTDEHandler:
+    """One RTDE session: version handshake, recipes, start/pause and input packages. The data
+    packages are sent by the controller's cycle (``RTDEStreams``)."""
+
+    def __init__(self, controller: URController, registry: InputOwnership, streams: RTDEStreams) -> None:
         self.c = controller
         self.registry = registry
+        self.streams = streams
 
     def __call__(self, sock: socket.socket, server: TcpServer) -> None:
         c = self.c
-        output: Recipe | None = None
+        connection = RTDEConnection(sock)
         inputs: dict[int, Recipe] = {}
-        started = False
-        period = 1.0 / 125.0
-        next_send = 0.0
-        getters: list[Callable[[dict[str, Any]], object]] = []
         owner = object()
+        self.streams.add(connection)
         try:
-            while server.running.is_set():
-                timeout = max(0.0, next_send - time.monotonic()) if started else 0.2
-                ready, _, _ = select.select([sock], [], [], min(timeout, 0.2))
-                if ready:
-                    size, kind = struct.unpack(">HB", _recv_exact(sock, 3, server.running))
-                    payload = _recv_exact(sock, size - 3, server.running) if size > 3 else b""
-                    if kind != U:
-                        self._setup_delay()
-                    if kind == V:
-                        self._send(sock, V, struct.pack(">B", 1))
-                    elif kind == v:
-                        self._send(sock, v, struct.pack(">IIII", *c.config.version))
-                    elif kind == O:
-                        frequency = struct.unpack(">d", payload[:8])[0]
-                        output = Recipe(1, parse_names(payload[8:]), OUTPUT_FIELDS)
-                        getters = [self._getter(name) for name in output.names] if output.valid else []
-                        cap = c.config.max_stream_rate
-                        rate = min(frequency, cap) if cap else frequency
-                        period = 1.0 / max(rate, 1.0)
-                        self._send(sock, O, output.reply_payload())
-                    elif kind == I:
-                        recipe = Recipe(len(inputs) + 1, parse_names(payload), INPUT_FIELDS)
-                        if recipe.valid and not self.registry.claim(owner, recipe.names):
-                            recipe.types = ["IN_USE" if self.registry.taken_by_other(owner, n) else t
-                                            for n, t in zip(recipe.names, recipe.types)]
-                            self._send(sock, I, struct.pack(">B", 0) + ",".join(recipe.types).encode())
-                            continue
-                        if recipe.valid:
-                            inputs[recipe.id] = recipe
-                        self._send(sock, I, recipe.reply_payload())
-                    elif kind == S:
-                        ok = output is not None and output.valid
-                        self._send(sock, S, struct.pack(">B", 1 if ok else 0))  # reply BEFORE the first data
-                        started = ok
-                        next_send = time.monotonic()
-                    elif kind == P:
-                        started = False
-                        self._send(sock, P, struct.pack(">B", 1))
-                    elif kind == U and payload:
-                        input_recipe = inputs.get(payload[0])
-                        if input_recipe is not None:
-                            c.set_inputs(input_recipe.unpack(payload[1:]))
+            while server.running.is_set() and not connection.dead:
+                ready, _, _ = select.select([sock], [], [], 0.2)
+                if not ready:
                     continue
-                now = time.monotonic()
-                if started and output is not None and now >= next_send:
-                    next_send = max(next_send + period, now + 0.25 * period)
-                    if now < c.stream_stall_until:
+                size, kind = struct.unpack(">HB", _recv_exact(sock, 3, server.running))
+                payload = _recv_exact(sock, size - 3, server.running) if size > 3 else b""
+                if kind != U:
+                    self._setup_delay()
+                if kind == V:
+                    connection.reply(V, struct.pack(">B", 1))
+                elif kind == v:
+                    connection.reply(v, struct.pack(">IIII", *c.config.version))
+                elif kind == O:
+                    frequency = struct.unpack(">d", payload[:8])[0]
+                    output = Recipe(1, parse_names(payload[8:]), OUTPUT_FIELDS)
+                    cap = c.config.max_stream_rate
+                    rate = min(frequency, cap) if cap else frequency
+                    with connection.lock:
+                        connection.output = output if output.valid else None
+                        connection.getters = [field_getter(name) for name in output.names] if output.valid else []
+                        connection.decimation = max(1, round(1.0 / (c.period * max(rate, 1.0))))
+                    connection.reply(O, output.reply_payload())
+                elif kind == I:
+                    recipe = Recipe(len(inputs) + 1, parse_names(payload), INPUT_FIELDS)
+                    if recipe.valid and not self.registry.claim(owner, recipe.names):
+                        recipe.types = ["IN_USE" if self.registry.taken_by_other(owner, n) else t
+                                        for n, t in zip(recipe.names, recipe.types)]
+                        connection.reply(I, struct.pack(">B", 0) + ",".join(recipe.types).encode())
                         continue
-                    stall = c.faults.take(FaultKind.STALL)
-                    if stall is not None:
-                        c.stream_stall_until = now + float(stall.params.get("seconds", 3.0))
-                        c.log(f"RTDE stream stalled for {stall.params.get('seconds', 3.0)} s (injected)")
-                        continue
-                    snapshot = c.snapshot
-                    data = output.pack([get(snapshot) for get in getters])
-                    self._send(sock, U, data)
+                    if recipe.valid:
+                        inputs[recipe.id] = recipe
+                    connection.reply(I, recipe.reply_payload())
+                elif kind == S:
+                    ok = connection.output is not None
+                    connection.reply(S, struct.pack(">B", 1 if ok else 0))  # the reply BEFORE the first data
+                    connection.started = ok
+                elif kind == P:
+                    connection.started = False
+                    connection.reply(P, struct.pack(">B", 1))
+                elif kind == U and payload:
+                    input_recipe = inputs.get(payload[0])
+                    if input_recipe is not None:
+                        c.set_inputs(input_recipe.unpack(payload[1:]))
         finally:
+            self.streams.remove(connection)
             self.registry.release(owner)
 
     def _setup_delay(self) -> None:
@@ -213,32 +301,22 @@ class RTDEHandler:
         if armed is not None:
             time.sleep(float(armed.params.get("seconds", 0.5)))
 
-    def _getter(self, name: str) -> Callable[[dict[str, Any]], object]:
-        c = self.c
-        if name == "timestamp":
-            # The controller's clock runs on while the stream is served, even when the control
-            # thread is busy (e.g. publishing a settled pose to the world, which renders frames).
-            return lambda s: c.sim_time()
-        if name.startswith("output_int_register_"):
-            index = int(name.rsplit("_", 1)[1])
-            return lambda s: c.out_int[index]
-        if name.startswith("output_double_register_"):
-            index = int(name.rsplit("_", 1)[1])
-            return lambda s: c.out_double[index]
-        if name.startswith("input_int_register_"):
-            index = int(name.rsplit("_", 1)[1])
-            return lambda s: c.in_int[index]
-        if name.startswith("input_double_register_"):
-            index = int(name.rsplit("_", 1)[1])
-            return lambda s: c.in_double[index]
-        typ = OUTPUT_FIELDS[name]
-        default = {"VECTOR6D": [0.0] * 6, "VECTOR3D": [0.0] * 3, "VECTOR6INT32": [0] * 6,
-                   "VECTOR6UINT32": [0] * 6, "DOUBLE": 0.0, "BOOL": False}.get(typ, 0)
-        return lambda s: s.get(name, default)
 
-    @staticmethod
-    def _send(sock: socket.socket, kind: int, payload: bytes) -> None:
-        sock.sendall(struct.pack(">HB", len(payload) + 3, kind) + payload)
+def field_getter(name: str) -> Callable[[dict[str, Any]], object]:
+    """How to read output field ``name`` from a cycle's fields (registers from their copies)."""
+    for prefix, bank in (("output_int_register_", "out_int"), ("output_double_register_", "out_double"),
+                         ("input_int_register_", "in_int"), ("input_double_register_", "in_double")):
+        if name.startswith(prefix):
+            index = int(name.rsplit("_", 1)[1])
+
+            def register(f: dict[str, Any], bank: str = bank, index: int = index) -> object:
+                return f[bank][index]
+
+            return register
+    typ = OUTPUT_FIELDS[name]
+    default = {"VECTOR6D": [0.0] * 6, "VECTOR3D": [0.0] * 3, "VECTOR6INT32": [0] * 6,
+               "VECTOR6UINT32": [0] * 6, "DOUBLE": 0.0, "BOOL": False}.get(typ, 0)
+    return lambda f: f.get(name, default)
 
 
 class InputOwnership:
@@ -306,7 +384,7 @@ class DashboardHandler:
         if lower == "is in remote control":
             return "true" if c.config.remote_control else "false", False
         if lower == "get robot model":
-            return "UR5", False
+            return c.config.robot_model, False
         if lower == "stop":
             c.stop_program("dashboard stop")
             return "Stopped", False
@@ -329,11 +407,14 @@ class DashboardHandler:
                 return f"{prefix}: PROTECTIVE_STOP", False
             return f"{prefix}: NORMAL", False
         if lower == "unlock protective stop":
-            if c.safety_bits & SAFETY_BIT_PROTECTIVE:
+            # PolyScope refuses for 5 s after the stop (and, as the twin has always answered, when
+            # there is no protective stop to unlock).
+            if c.safety_bits & SAFETY_BIT_PROTECTIVE and c.unlock_wait() <= 0:
                 c.clear_safety()
                 return "Protective stop releasing", False
+            delay = f"{c.config.protective_stop_unlock_delay:g}"
             return (
-                "Cannot unlock protective stop until 5s after occurrence. "
+                f"Cannot unlock protective stop until {delay}s after occurrence. "
                 "Always inspect cause of protective stop before unlocking",
                 False,
             )

@@ -25,6 +25,7 @@ from sim_devices.ur._servers import (
     DashboardHandler,
     InputOwnership,
     RTDEHandler,
+    RTDEStreams,
     ScriptHandler,
     TcpServer,
 )
@@ -60,8 +61,10 @@ class URControllerTwin:
         ports = {"rtde": RTDE_PORT, "dashboard": DASHBOARD_PORT, "script": SCRIPT_PORT, **dict(ports or {})}
         self.controller = URController(world, self.config, self.faults, on_disconnect=self.drop_connections)
         self.script_handler = ScriptHandler(self.controller)
+        self.streams_hub = RTDEStreams(self.controller)
         self.servers = {
-            "rtde": TcpServer(host, ports["rtde"], RTDEHandler(self.controller, InputOwnership()), "rtde"),
+            "rtde": TcpServer(host, ports["rtde"], RTDEHandler(self.controller, InputOwnership(), self.streams_hub),
+                              "rtde"),
             "dashboard": TcpServer(host, ports["dashboard"], DashboardHandler(self.controller), "dashboard"),
             "script": TcpServer(host, ports["script"], ScriptHandler(self.controller), "script"),
         }
@@ -116,9 +119,9 @@ class URControllerTwin:
         with self.controller.lock:
             return list(self.controller.visits[int(since):])
 
-    def truth(self) -> list[dict[str, Any]]:
-        """The world's pose log."""
-        return self.world.truth.entries("pose")
+    def truth(self, event: str | None = "pose") -> list[dict[str, Any]]:
+        """The world's ground-truth log: the settled poses (``event="payload"``: every payload set; None: all)."""
+        return self.world.truth.entries(event)
 
     def events(self) -> list[str]:
         with self.controller.lock:
@@ -160,21 +163,25 @@ class URControllerTwin:
     def connections(self) -> dict[str, int]:
         return {name: server.connection_count for name, server in self.servers.items()}
 
+    def streams(self) -> list[dict[str, int]]:
+        """Each RTDE connection's data packages sent and peak backlog (bytes queued for a slow reader)."""
+        return self.streams_hub.stats()
+
     def describe(self) -> dict[str, Any]:
         return {"config": self.config.to_dict(), "world": self.world.describe(), "endpoints": self.endpoints()}
 
     def control(self, command: str, /, **kwargs: Any) -> Any:
         """The twin's control API (also reachable through ``TwinProcess.call``): each command is the
-        method of that name: ``endpoints``, ``state``, ``visits`` (since), ``truth``, ``events``,
+        method of that name: ``endpoints``, ``state``, ``visits`` (since), ``truth`` (event), ``events``,
         ``arm_fault`` (kind, count, params), ``trigger`` (kind), ``clear_faults``, ``fired``,
         ``set_repeatability`` (translation_std, rotation_std, approach_bias, drift_amplitude,
-        drift_time_constant), ``connections``, ``describe``.
+        drift_time_constant), ``connections``, ``streams``, ``describe``.
         """
         commands: dict[str, Callable[..., Any]] = {
             "endpoints": self.endpoints, "state": self.state, "visits": self.visits, "truth": self.truth,
             "events": self.events, "arm_fault": self.arm_fault, "trigger": self.trigger,
             "clear_faults": self.clear_faults, "fired": self.fired, "set_repeatability": self.set_repeatability,
-            "connections": self.connections, "describe": self.describe,
+            "connections": self.connections, "streams": self.streams, "describe": self.describe,
         }
         return dispatch(commands, command, kwargs, "UR twin")
 
