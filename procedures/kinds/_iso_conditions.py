@@ -55,17 +55,10 @@ def test_conditions(params: IsoParameters, station: StationFile, points: Mapping
                                                    "set_on_robot": False})
     payload["rated_mass_kg"] = None if rated is None else rated.payload
     payload["percent_of_rated"] = _percent(payload.get("mass_kg"), payload["rated_mass_kg"])
-    reference = station.frames.reference_tcp_pose
-    cube_points = {}
-    for label, entry in points.items():
-        in_base = entry.get("commanded_in_base")
-        cube_points[label] = {"in_m": None, "in_base": in_base}
-    from procedures.kinds.iso9283_repeatability import cube_path  # the plan's own geometry
+    from procedures.kinds.iso9283_repeatability import cube_path  # the plan's own geometry (no import cycle)
 
-    for label, in_m, tcp in cube_path(params, station):
-        cube_points.setdefault(label, {"in_base": tcp})
-        cube_points[label]["in_m"] = in_m
-        cube_points[label]["in_base"] = cube_points[label].get("in_base") or tcp
+    reference = station.frames.reference_tcp_pose
+    cube_points = {label: {"in_m": in_m, "in_base": tcp} for label, in_m, tcp in cube_path(params, station)}
     applied_ids = {info.get("id") for info in applied}
     return {
         "standard": STANDARD,
