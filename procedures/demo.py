@@ -112,23 +112,35 @@ def run_procedure(runs_dir: Path, procedure: Path, station: Path, quiet: bool,
 
 
 def iso_table(results: dict[str, Any]) -> str:
-    """The paper's Table 1: RP per point, measured beside the cell's ground truth."""
-    header = ("| point | RP_l measured (µm) | RP_l true (µm) | RP_a meas./true (″) | RP_b meas./true (″) "
-              "| RP_c meas./true (″) | AP_P measured (µm) |")
+    """The paper's Table 1: RP per point, measured (± U, k = 2, where evaluated) beside the cell's ground truth."""
+    header = ("| point | RP_l measured ± U (µm) [95 % CI] | RP_l true (µm) | RP_a meas. ± U / true (″) "
+              "| RP_b meas. ± U / true (″) | RP_c meas. ± U / true (″) | AP_P measured (µm) |")
     lines = [header, "|" + " --- |" * 7]
     for point in results["order"]:
         entry = results["points"][point]
         m, t = entry["stats"], entry.get("true_stats") or {}
+        figures = ((results.get("figures") or {}).get("points") or {}).get(point, {})
 
-        def pair(key: str, m=m, t=t) -> str:
+        def spread(key: str, scale: float, m=m, figures=figures) -> str:
+            figure = figures.get(key) or {}
+            if figure.get("expanded_uncertainty") is None:
+                return f"{m[key] / scale:.2f}"
+            return f"{figure['value'] / scale:.2f} ± {figure['expanded_uncertainty'] / scale:.2f}"
+
+        def pair(key: str, t=t) -> str:
             true = f"{t[key] / ARCSEC:.2f}" if key in t else "–"
-            return f"{m[key] / ARCSEC:.2f} / {true}"
+            return f"{spread(key, ARCSEC)} / {true}"
 
         interval = f" [{m['rp_l_ci'][0] * 1e6:.2f}, {m['rp_l_ci'][1] * 1e6:.2f}]" if m.get("rp_l_ci") else ""
         true_l = f"{t['rp_l'] * 1e6:.2f}" if "rp_l" in t else "–"
-        lines.append(f"| {point} | {m['rp_l'] * 1e6:.2f}{interval} | {true_l} | "
+        lines.append(f"| {point} | {spread('rp_l', 1e-6)}{interval} | {true_l} | "
                      f"{pair('rp_a')} | {pair('rp_b')} | {pair('rp_c')} | {m['ap_p'] * 1e6:.1f} |")
     return "\n".join(lines)
+
+
+def deviation_lines(results: dict[str, Any]) -> list[str]:
+    """The run's deviations from ISO 9283 and the measurement system's warnings, one line each."""
+    return [f"  {d['severity']}: {d['message']}" for d in results.get("deviations") or []]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -172,8 +184,11 @@ def main(argv: list[str] | None = None) -> int:
         report_path = store.run_dir(iso["id"]) / "report.html"
         report_path.write_text(render_report(iso, store.samples(iso["id"]), store.events(iso["id"])),
                                encoding="utf-8")
-    print("\nISO 9283 pose repeatability on the simulated cell (measured, compensated; truth from the twins):")
+    print("\nISO 9283 pose repeatability on the simulated cell (measured, compensated, ± U with k = 2; truth from "
+          "the twins):")
     print(iso_table(iso["results"]))
+    print("\ndeviations and warnings:")
+    print("\n".join(deviation_lines(iso["results"])) or "  none")
     print(f"\ncalibration records: {displacement['results']['record_path']}\n"
           f"                     {angle['results']['record_path']}")
     print(f"report: {report_path}")
