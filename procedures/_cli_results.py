@@ -35,10 +35,11 @@ def figure(entry: dict[str, Any], key: str) -> dict[str, Any] | None:
     (``u_source`` ``"U"``), else the half-width of the confidence interval (``"ci"``), else None.
     """
     stats = entry.get("stats") or {}
-    candidates = [stats.get(key), (entry.get("figures") or {}).get(key)]
+    # The figure object first: its value is the one the report states (noise bias corrected, docs/uncertainty.md).
+    candidates = [(entry.get("figures") or {}).get(key), stats.get(key)]
     value: float | None = None
     u: float | None = None
-    ci = stats.get(f"{key}_ci")
+    ci = None
     for candidate in candidates:
         if isinstance(candidate, dict):
             value = value if value is not None else _number(candidate.get("value"))
@@ -46,6 +47,7 @@ def figure(entry: dict[str, Any], key: str) -> dict[str, Any] | None:
             ci = ci if ci is not None else candidate.get("confidence_interval")
         elif value is None:
             value = _number(candidate)
+    ci = ci if ci is not None else stats.get(f"{key}_ci")
     extra = (entry.get("uncertainty") or {}).get(key)
     if u is None:
         u = _number(extra.get("expanded_uncertainty") if isinstance(extra, dict) else extra)
@@ -62,8 +64,11 @@ def figure(entry: dict[str, Any], key: str) -> dict[str, Any] | None:
 def iso_rows(results: dict[str, Any]) -> list[dict[str, Any]]:
     """Per ISO point (in the cycle's order): ``point``, ``n`` and each figure of ``ISO_FIGURES`` (``figure``)."""
     rows = []
+    reported = ((results.get("figures") or {}).get("points") or {})  # issue 13's figure objects, per point
     for label in results.get("order") or []:
         entry = (results.get("points") or {}).get(label) or {}
+        if isinstance(reported.get(label), dict):
+            entry = {**entry, "figures": {**(entry.get("figures") or {}), **reported[label]}}
         rows.append({"point": label, "n": entry.get("n"), "error": entry.get("error"),
                      **{key: figure(entry, key) for key, *_ in ISO_FIGURES}})
     return rows

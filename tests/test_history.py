@@ -11,11 +11,11 @@ import math
 
 import pytest
 
-from procedures._cli_results import ARCSEC, figure
+from procedures._cli_results import ARCSEC, figure, iso_rows
 from procedures._run_state import RunState
 from procedures._store import RunStore
 from procedures.cli import main
-from procedures.serve._reader import StoreReader
+from procedures.serve._reader import StoreReader, iso_points
 
 SERIAL = "20235500777"
 
@@ -139,3 +139,23 @@ def test_bad_filters_are_usage_errors(runs_dir, args, capsys):
     with pytest.raises(SystemExit) as exited:
         main(["runs", "--runs-dir", str(runs), *args])
     assert exited.value.code == 2 and "Traceback" not in capsys.readouterr().err
+
+
+def test_the_reported_figure_objects_win_over_the_raw_statistics():
+    """The shape the ISO kind stores (docs/results.md): raw statistics per point, and the reported figure
+    objects (noise bias corrected, with U) under ``results["figures"]["points"]``. The end-of-run table, the
+    history, the web view and OPC UA must show what the report states."""
+    results = _iso_results(38.14e-6, ci=5.3e-6)
+    results["figures"] = {"points": {"P1": {"rp_l": {"value": 37.72e-6, "expanded_uncertainty": 1.91e-6,
+                                                     "coverage_factor": 2, "confidence_interval": [34e-6, 44.6e-6]},
+                                            "rp_a": {"value": 11.8 * ARCSEC, "expanded_uncertainty": 1.5 * ARCSEC}}}}
+    p1, p2 = iso_rows(results)
+    assert p1["rp_l"]["value"] == 37.72e-6 and p1["rp_l"]["u"] == 1.91e-6 and p1["rp_l"]["u_source"] == "U"
+    assert p1["rp_l"]["ci"] == [34e-6, 44.6e-6]
+    assert p1["rp_a"]["value"] == pytest.approx(11.8 * ARCSEC) and p1["ap_p"] == {"value": 80e-6, "u": None,
+                                                                                  "u_source": None, "ci": None}
+    assert p2["rp_l"]["value"] == 38.14e-6 and p2["rp_l"]["u_source"] == "ci"  # no figure objects for P2
+    points = iso_points(results)
+    assert points["P1"]["rp_l"] == 37.72e-6 and points["P1"]["rp_l_u"] == 1.91e-6
+    assert points["P1"]["rp_l_ci"] == pytest.approx([32.84e-6, 43.44e-6])  # the sampling interval stays
+    assert "rp_l_u" not in points["P2"] and points["P2"]["rp_l"] == 38.14e-6

@@ -83,12 +83,12 @@ def _argument(name: str, description: str) -> ua.Argument:
 
 
 def opc_name(stat: str) -> str:
-    """``rp_l`` → ``RP_l``, ``rp_l_ci`` → ``RP_l_CI``, ``n`` → ``N`` (the ISO 9283 symbols)."""
+    """``rp_l`` → ``RP_l``, ``rp_l_ci`` → ``RP_l_CI``, ``rp_l_u`` → ``RP_l_U``, ``n`` → ``N`` (the ISO 9283 symbols)."""
     parts = stat.split("_")
     if parts[0] in ("rp", "ap", "s"):
         parts[0] = parts[0].upper()
-    if parts[-1] == "ci":
-        parts[-1] = "CI"
+    if parts[-1] in ("ci", "u"):
+        parts[-1] = parts[-1].upper()
     return "_".join(parts) if len(parts) > 1 else stat.upper()
 
 
@@ -272,7 +272,8 @@ class InstrumentOpcUa:
                 if path not in self.nodes:
                     initial = [math.nan, math.nan] if isinstance(value, list) else (0 if stat == "n" else math.nan)
                     await self._variable(path, V.UInt32 if stat == "n" else V.Double, initial,
-                                         f"{stat} of point {label} (SI: m, rad; _CI: 95 % interval)")
+                                         f"{stat} of point {label} (SI: m, rad; _CI: 95 % interval; "
+                                         "_U: expanded uncertainty, k = 2)")
                 await self._set(path, _number(value, stat))
         await self._set("Results.Json", json.dumps(results, allow_nan=True))
         await self._set("Results.Procedure", finished["procedure"])

@@ -216,8 +216,9 @@ def progress_of(samples: list[Sample], total: int | None) -> dict[str, Any]:
 
 def iso_points(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
     """Per ISO point of an ``iso9283`` results dict: ``n`` and every scalar figure and interval of its
-    statistics (``rp_l``, ``rp_l_ci``, ``ap_p`` ..., SI; uncertainties when the results carry them),
-    without the pose lists."""
+    statistics (``rp_l``, ``rp_l_ci``, ``ap_p`` ..., SI), without the pose lists. Where the results carry
+    figure objects (docs/results.md) their value replaces the statistic (it is the one the report states:
+    noise bias corrected) and ``<figure>_u`` is its expanded uncertainty U (k = 2)."""
     points: dict[str, dict[str, Any]] = {}
     if results.get("kind") != "iso9283":
         return points
@@ -230,6 +231,12 @@ def iso_points(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
                 continue
             if isinstance(value, (int, float)) or (isinstance(value, list) and len(value) == 2):
                 figures[key] = value
+        reported = (((results.get("figures") or {}).get("points") or {}).get(label)) or {}
+        for key, figure in reported.items():
+            if isinstance(figure, dict) and isinstance(figure.get("value"), (int, float)):
+                figures[key] = figure["value"]
+                if isinstance(figure.get("expanded_uncertainty"), (int, float)):
+                    figures[f"{key}_u"] = figure["expanded_uncertainty"]
         if entry.get("error"):
             figures["error"] = entry["error"]
         points[label] = figures

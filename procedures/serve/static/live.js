@@ -75,6 +75,10 @@ function showFrames(frames) {
   }));
 }
 
+// A figure with its expanded uncertainty U (k = 2) when the results carry one.
+const withU = (s, key, digits, scale) => fixed(s[key], digits, scale) +
+  (s[`${key}_u`] != null ? ` ± ${fixed(s[`${key}_u`], digits, scale)}` : "");
+
 function showResults(data) {
   const rows = Object.entries(data.iso_points || {});
   if (!rows.length) return;
@@ -82,10 +86,10 @@ function showResults(data) {
   const head = el("tr", {}, ...["point", "n", "RP_l (µm)", "95 % CI", "RP_a (″)", "RP_b (″)", "RP_c (″)", "AP_P (µm)"]
     .map((t) => el("th", { class: "num" }, t)));
   $("results").replaceChildren(head, ...rows.map(([label, s]) => el("tr", {},
-    el("td", {}, label), el("td", { class: "num" }, s.n ?? "–"), el("td", { class: "num" }, fixed(s.rp_l, 2, UM)),
+    el("td", {}, label), el("td", { class: "num" }, s.n ?? "–"), el("td", { class: "num" }, withU(s, "rp_l", 2, UM)),
     el("td", { class: "num" }, s.rp_l_ci ? `${fixed(s.rp_l_ci[0], 1, UM)}–${fixed(s.rp_l_ci[1], 1, UM)}` : "–"),
-    el("td", { class: "num" }, fixed(s.rp_a, 2, ARCSEC)), el("td", { class: "num" }, fixed(s.rp_b, 2, ARCSEC)),
-    el("td", { class: "num" }, fixed(s.rp_c, 2, ARCSEC)), el("td", { class: "num" }, fixed(s.ap_p, 1, UM)))));
+    el("td", { class: "num" }, withU(s, "rp_a", 2, ARCSEC)), el("td", { class: "num" }, withU(s, "rp_b", 2, ARCSEC)),
+    el("td", { class: "num" }, withU(s, "rp_c", 2, ARCSEC)), el("td", { class: "num" }, withU(s, "ap_p", 1, UM)))));
 }
 
 const source = new EventSource(`/api/runs/${requested}/stream`);
