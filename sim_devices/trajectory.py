@@ -192,6 +192,19 @@ class TrajectoryLog:
         last = records[-1]
         return math.inf if last.closed else float(last.time[-1])
 
+    def samples(self, t0: float, t1: float) -> tuple[np.ndarray, np.ndarray]:
+        """The recorded samples from ``t0`` to ``t1`` (controller s) of every record: (times (n,),
+        true flange poses (n, 4, 4)). Between records the robot rests (``flange_at`` fills that)."""
+        times, poses = [], []
+        for record in self.records():
+            inside = (record.time >= t0) & (record.time <= t1)
+            if np.any(inside):
+                times.append(record.time[inside])
+                poses.append(record.flange()[inside])
+        if not times:
+            return np.empty(0), np.empty((0, 4, 4))
+        return np.concatenate(times), np.concatenate(poses)
+
     def flange_at(self, times, *, rest: np.ndarray | None = None) -> np.ndarray:
         """True flange poses (n, 4, 4) at controller ``times``.
 

@@ -14,6 +14,12 @@ segment (a UR refuses overlapping blends too). Arcs are joined without a blend: 
 with r > 0 is blended only when the two pieces are tangent there (two half circles), otherwise
 the robot stops at it (logged by the caller).
 
+Speed: a run is travelled at one speed — the least of its moves' speeds, lowered where a blend or
+an arc would need more than the run's acceleration (the least of its moves' accelerations) to
+turn: at most ``sqrt(a·R)`` on an arc of radius R, and on a blend ``sqrt(a·r·cos²(φ/2)/sin(φ/2))``
+(the parabola's sharpest curvature is at its vertex). A real controller slows down only near the
+corner; the twin slows the run (simpler, and the same at the corner).
+
 Orientation: knots at the start of each run, at every waypoint (at the middle of its blend) and at
 the end, interpolated by slerp in arc length between knots. A ``movec`` (mode 0, "unconstrained")
 turns from its start orientation to that of its target; the via point's orientation is not used.
@@ -256,6 +262,7 @@ class PathPlan:
         length = 0.0
         speeds: list[float] = []
         accels: list[float] = []
+        turns: list[tuple[float, float]] = []  # (radius, 1/sin-ish factor): speed² ≤ a · radius · factor
         entry_cut = 0.0  # how much of the current raw piece the previous blend took off its start
         for i, piece in enumerate(raw):
             move = self.moves[i]
@@ -265,10 +272,15 @@ class PathPlan:
             trimmed = _trim(piece, entry_cut, exit_cut)
             run_pieces.append(trimmed)
             length += trimmed.length
+            if isinstance(piece, Arc):
+                turns.append((piece.radius, 1.0))
             if exit_cut > 0:
                 nxt = raw[i + 1]
                 assert isinstance(piece, Line) and isinstance(nxt, Line)
                 corner = piece.end
+                half = 0.5 * _deflection(piece.direction, nxt.direction)
+                if half > 1e-9:
+                    turns.append((exit_cut, math.cos(half) ** 2 / math.sin(half)))
                 blend = Blend(corner - exit_cut * piece.direction, corner.copy(), corner + exit_cut * nxt.direction)
                 run_pieces.append(blend)
                 knots_s.append(length + 0.5 * blend.length)
@@ -283,9 +295,11 @@ class PathPlan:
             waypoint_s.append(length)
             if i < n - 1 and blends[i] < 0:
                 continue  # tangent junction: the run goes on
-            self.runs.append(Run(run_pieces, knots_s, knots_rotation, min(speeds), min(accels), waypoint_s))
+            accel = min(accels)
+            speed = min([*speeds, *(math.sqrt(accel * radius * factor) for radius, factor in turns)])
+            self.runs.append(Run(run_pieces, knots_s, knots_rotation, speed, accel, waypoint_s))
             run_pieces, knots_s, knots_rotation, waypoint_s = [], [0.0], [rotations[i + 1]], [0.0]
-            length, speeds, accels = 0.0, [], []
+            length, speeds, accels, turns = 0.0, [], [], []
 
     # ----------------------------------------------------------------------------- sampling
     def pose(self, run: int, s: float) -> np.ndarray:
