@@ -17,6 +17,7 @@ from procedures._files import InputRefused, read_text_file
 from procedures._hooks import HookRunner
 from procedures._loading import load_procedure, load_station, resolve_procedure_path
 from procedures._models import HookSpec, StationFile
+from procedures._overrides import apply_overrides
 from procedures._run_state import PauseDecision
 from procedures._science import InstrumentScience, Science
 from procedures._station import Operator, StationRuntime
@@ -50,6 +51,8 @@ def open_engine(
     pause_handler: Callable[[RunEngine], PauseDecision] | None = None,
     pause_timeout_s: float = 3600.0,
     extra_hooks: Sequence[HookSpec] = (),
+    store: str | None = None,
+    overrides: Sequence[str] = (),
 ) -> Iterator[RunEngine]:
     """A ``RunEngine`` for a new run (``procedure`` + ``station``) or a stored one (``run_id``).
 
@@ -57,8 +60,15 @@ def open_engine(
     (e.g. a freshly started simulated cell); its frames and envelope must equal the snapshot's.
     The process holds the run's lease for the whole block (``RunLocked`` if another live process
     does). Devices are closed (after the engine has brought them to a safe state) when the block ends.
+
+    ``store`` is a ``postgresql://`` URL of a shared run store (default ``$INSTRUMENT_STORE``, else the
+    runs folder's SQLite file; per-run files stay in ``runs_dir`` either way). ``overrides``
+    (``"key=value"``, a new run only) change the procedure's parameters; the stored procedure text
+    holds them (``procedures._overrides``).
     """
-    store = RunStore(runs_dir)
+    if overrides and run_id is not None:
+        raise RunError("parameter overrides (--set) apply to a new run only; a resumed run keeps its own")
+    run_store = RunStore(runs_dir, url=store)
     runtime = None
     lease: Lease | None = None
     try:
@@ -73,16 +83,19 @@ def open_engine(
                 text = read_text_file(procedure_path, what="procedure file")
             except InputRefused as exc:
                 raise ConfigError([str(exc)]) from None
-            proc = load_procedure(procedure_path, text)
+            if overrides:
+                text, proc = apply_overrides(procedure_path, text, list(overrides))
+            else:
+                proc = load_procedure(procedure_path, text)
             station_model = load_station(station, check_geometry=not custom_science)
             runtime = StationRuntime(station_model, devices=devices, operator=operator)
-            run_id = create_run(store, proc, runtime, science, procedure_file=str(procedure_path.resolve()),
+            run_id = create_run(run_store, proc, runtime, science, procedure_file=str(procedure_path.resolve()),
                                 procedure_text=text, station_path=str(Path(station).resolve()))
-            lease = store.acquire_lease(run_id)
+            lease = run_store.acquire_lease(run_id)
         else:
-            run = store.get_run(run_id)
+            run = run_store.get_run(run_id)
             run_id = str(run["id"])
-            lease = store.acquire_lease(run_id)  # before anything of the run is touched
+            lease = run_store.acquire_lease(run_id)  # before anything of the run is touched
             proc = load_procedure(run["procedure_file"] or f"run {run_id}", run["procedure_text"], stored=True)
             snapshot = StationFile.model_validate(run["station"])
             if station is not None:
@@ -92,12 +105,13 @@ def open_engine(
                         raise RunError(f"station {station}: its {part} differ from the run's snapshot; "
                                        "resume on the station the run started on")
                 station_model = with_earlier_truth(station_model, snapshot)
-                store.update_run(run_id, station=station_model.model_dump(), station_path=str(Path(station).resolve()))
+                run_store.update_run(run_id, station=station_model.model_dump(),
+                                     station_path=str(Path(station).resolve()))
             else:
                 station_model = snapshot
             runtime = StationRuntime(station_model, devices=devices, operator=operator)
         hooks = HookRunner([*station_model.hooks, *proc.hooks, *extra_hooks])
-        engine = RunEngine(store, run_id, proc, runtime, science, hooks=hooks, listener=listener,
+        engine = RunEngine(run_store, run_id, proc, runtime, science, hooks=hooks, listener=listener,
                            pause_handler=pause_handler, pause_timeout_s=pause_timeout_s, lease=lease)
         yield engine
     finally:
@@ -107,5 +121,5 @@ def open_engine(
                 runtime.close()
         finally:
             if lease is not None:
-                store.release_lease(lease)
-            store.close()
+                run_store.release_lease(lease)
+            run_store.close()

@@ -1,4 +1,6 @@
-"""Shared pieces of the run-related subcommands: the runs folder, the terminal display, signals.
+"""Shared pieces of the run-related subcommands: the runs folder and store, the pause prompt, signals,
+and the end of a run (its key results, its report, the one line of ``--quiet``, the ``done`` event).
+The progress display is ``procedures._cli_display``; the results' lines ``procedures._cli_results``.
 
 Signals while a run runs (``signals_control``): the first Ctrl-C pauses at the next safe point, a
 second one (before the run has resumed from that pause) aborts at once; the count starts again at
@@ -20,27 +22,44 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, TextIO
 
+from procedures._cli_display import Display
+from procedures._cli_results import result_lines, result_summary
 from procedures._errors import RunError
 from procedures._run_state import PauseDecision, RunState
 from procedures._store import RunStore
+from procedures._store_db import SQLITE_FILE, STORE_ENV, store_location
 
 if TYPE_CHECKING:  # only for annotations: the engine's stack loads with the commands that run one
     from procedures._engine import RunEngine
 
+__all__ = ["EXIT_CODES", "Display", "add_display", "add_runs_dir", "console_pause_handler", "detach_at_once",
+           "drive", "open_store", "signals_control", "station_for"]
+
 EXIT_CODES = {RunState.FINISHED: 0, RunState.FAILED: 1, RunState.ABORTED: 2, RunState.PAUSED: 3}
+RUN_EXIT_CODES = ("exit codes: 0 finished, 1 failed or bad input (one line on stderr), 2 aborted (a second "
+                  "Ctrl-C, SIGTERM, SIGHUP), 3 left paused (continue with: instrument resume RUN), "
+                  "130 interrupted before the run started")
+READ_EXIT_CODES = "exit codes: 0 done, 1 bad input, no such run or no store (one line on stderr), 2 bad arguments"
 
 
 def add_runs_dir(parser) -> None:
     parser.add_argument("--runs-dir", default=os.environ.get("INSTRUMENT_RUNS", "runs"),
-                        help="runs folder holding runs.sqlite (default: $INSTRUMENT_RUNS or ./runs)")
+                        help="runs folder: per-run files and, by default, the store runs.sqlite "
+                             "(default: $INSTRUMENT_RUNS or ./runs)")
+    parser.add_argument("--store", default=None, metavar="URL",
+                        help=f"a shared run store, postgresql://USER@HOST/DATABASE (default: ${STORE_ENV}, "
+                             "else the runs folder's runs.sqlite); per-run files stay in the runs folder")
 
 
 def add_display(parser) -> None:
     group = parser.add_mutually_exclusive_group()
-    group.add_argument("--quiet", action="store_true", help="print only the final state")
-    group.add_argument("--jsonl", action="store_true", help="one JSON event per line on stdout (for automation)")
+    group.add_argument("--quiet", action="store_true",
+                       help="print exactly one line at the end: RUN_ID STATE")
+    group.add_argument("--jsonl", action="store_true",
+                       help="one JSON event per line on stdout (for automation); the last is 'done' with the "
+                            "state, reason, key results and report path")
 
 
 def add_seed(parser, default: int | None) -> None:
@@ -72,10 +91,12 @@ def seconds_value(text: str) -> float:
 
 
 def open_store(args) -> RunStore:
+    """The store a reading command uses (``--store``/``$INSTRUMENT_STORE``, else the runs folder's SQLite)."""
     path = Path(args.runs_dir)
-    if not (path / "runs.sqlite").is_file():
-        raise RunError(f"no run store in {path} (use --runs-dir or $INSTRUMENT_RUNS)")
-    return RunStore(path)
+    url = store_location(getattr(args, "store", None))
+    if url is None and not (path / SQLITE_FILE).is_file():
+        raise RunError(f"no run store in {path} (use --runs-dir or $INSTRUMENT_RUNS, or --store URL)")
+    return RunStore(path, url=url)
 
 
 def write_output(path: str | Path, text: str) -> None:
@@ -95,71 +116,50 @@ def find_run(store: RunStore, run_id: str) -> dict | None:
         return None
 
 
-def _clock(seconds: float | None) -> str:
-    if seconds is None:
-        return "--:--"
-    seconds = int(seconds)
-    return f"{seconds // 3600}:{seconds // 60 % 60:02d}:{seconds % 60:02d}"
+_ANSWERS: dict[str, PauseDecision] = {"\r": "resume", "\n": "resume", "a": "abort", "q": "detach"}
+PAUSE_PROMPT = "run paused: [Enter] resume, [a] abort, [q] quit and leave it paused (instrument resume RUN) "
 
 
-class Display:
-    """Progress bar with ETA and a live line with the last pose and its quality (on stderr),
-    or JSON lines on stdout, or nothing."""
+def ask_pause_key(fd: int, out: TextIO) -> PauseDecision:
+    """Read single keys from terminal ``fd`` until one is an answer (no Enter needed after a or q).
 
-    def __init__(self, mode: str = "bar", stream=None) -> None:
-        self.mode = mode
-        self.stream = stream or sys.stderr
-        self.last = ""
+    An unknown key asks again; end of input leaves the run paused. The terminal's own mode is put
+    back whatever happens (a Ctrl-C meanwhile still aborts: signals stay on in cbreak mode).
+    """
+    import termios
+    import tty
 
-    def __call__(self, event: dict) -> None:
-        if self.mode == "jsonl":
-            print(json.dumps(event, default=str), flush=True)
-            return
-        if self.mode == "quiet":
-            return
-        kind = event["event"]
-        if kind == "point_measured":
-            pose = event.get("pose")
-            if event.get("ok") and pose:
-                self.last = (f"{event['label']}: x {pose[0] * 1e3:.4f} y {pose[1] * 1e3:.4f} z {pose[2] * 1e3:.4f} mm  "
-                             f"residual {(event.get('residual_rms') or 0) * 1e6:.2f} µm")
-            else:
-                self.last = f"{event['label']}: FAILED {event.get('error')}"
-        elif kind == "progress":
-            done, total = event["done"], event["total"]
-            width = 30
-            filled = int(width * done / max(total, 1))
-            line = (f"[{'#' * filled}{'.' * (width - filled)}] {done}/{total} {100 * done / max(total, 1):3.0f}% "
-                    f"ETA {_clock(event.get('eta_s'))} | {self.last}")
-            print("\r" + line[:150].ljust(150), end="", file=self.stream, flush=True)
-        elif kind == "state":
-            print(
-                f"\n{time.strftime('%H:%M:%S')} {event['state']}"
-                + (f": {event['reason']}" if event.get("reason") else ""),
-                file=self.stream,
-                flush=True,
-            )
-        elif kind == "dry_run":
-            problems = event.get("problems") or []
-            print(f"dry run: {event['steps']} steps checked, {len(problems)} problems", file=self.stream, flush=True)
-        elif kind == "setup":
-            print(f"\nset-up: {event['setup']}", file=self.stream, flush=True)
+    saved = termios.tcgetattr(fd)
+    try:
+        tty.setcbreak(fd)
+        print(f"\n{PAUSE_PROMPT}", end="", file=out, flush=True)
+        while True:
+            key = os.read(fd, 1).decode("utf-8", "replace")
+            if not key:
+                print("(no more input: left paused)", file=out, flush=True)
+                return "detach"
+            answer = _ANSWERS.get(key.lower())
+            if answer is not None:
+                print({"resume": "resuming", "abort": "aborting", "detach": "leaving it paused"}[answer],
+                      file=out, flush=True)
+                return answer
+            shown = repr(key) if not key.isprintable() else key
+            print(f"\n{shown}: not an answer. {PAUSE_PROMPT}", end="", file=out, flush=True)
+    finally:
+        termios.tcsetattr(fd, termios.TCSADRAIN, saved)
 
 
-_ANSWERS: dict[str, PauseDecision] = {"": "resume", "a": "abort", "q": "detach"}
-
-
-def console_pause_handler(engine: RunEngine) -> PauseDecision:
+def console_pause_handler(engine: RunEngine, display: Display | None = None) -> PauseDecision:
     """Ask the operator what to do with a paused run (without a terminal: leave it paused)."""
     if not sys.stdin.isatty():
         return "detach"
-    print("\nrun paused. [Enter] resume, [a] abort, [q] quit and leave it paused (instrument resume RUN)",
-          file=sys.stderr)
+    if display is not None:
+        display.stop()  # the live display would draw over the prompt
     try:
-        answer = input("> ").strip().lower()
-    except EOFError:
-        return "detach"
-    return _ANSWERS.get(answer, "detach")
+        return ask_pause_key(sys.stdin.fileno(), sys.stderr)
+    finally:
+        if display is not None:
+            display.start()
 
 
 def detach_at_once(engine: RunEngine) -> PauseDecision:
@@ -220,9 +220,27 @@ def cell_directory(runs_dir: Path) -> Path:
     return Path(tempfile.mkdtemp(prefix=time.strftime("%Y%m%d-%H%M%S-"), dir=parent))
 
 
+def calibration_files(paths: list[str]) -> list[str]:
+    """``--calibration FILE`` values as absolute paths; a file that is not there is one line."""
+    found = []
+    for name in paths:
+        path = Path(name)
+        if not path.is_file():
+            raise RunError(f"--calibration {name}: no such file (a calibration record, "
+                           "runs/<run>/calibration-<kind>.json)")
+        found.append(str(path.resolve()))
+    return found
+
+
 @contextmanager
-def station_for(station: str | None, runs_dir: Path, seed: int) -> Iterator[str | None]:
-    """``sim`` starts the simulated cell for the run (its files kept in a folder of its own under the runs folder)."""
+def station_for(station: str | None, runs_dir: Path, seed: int, calibration: list[str] | None = None
+                ) -> Iterator[str | None]:
+    """``sim`` starts the simulated cell for the run (its files kept in a folder of its own under the runs
+    folder); ``calibration``: the records the cell's station puts in force (``--calibration``)."""
+    records = calibration_files(calibration or [])
+    if records and station != "sim":
+        raise RunError("--calibration goes with --station sim; a station file names its records in "
+                       "calibration.record")
     if station != "sim":
         yield station
         return
@@ -236,20 +254,71 @@ def station_for(station: str | None, runs_dir: Path, seed: int) -> Iterator[str 
         cell.stop()
         raise RunError(f"the simulated cell did not start: {str(exc).strip().splitlines()[-1]}") from None
     try:
-        yield str(cell.station_path)
+        yield str(_with_records(Path(cell.station_path), records) if records else cell.station_path)
     finally:
         cell.stop()
 
 
-def drive(engine: RunEngine, args: argparse.Namespace) -> int:
-    """Execute with the display and the signal handling; print the outcome; return the exit code."""
+def _with_records(station_path: Path, records: list[str]) -> Path:
+    """A copy of the simulated cell's station file with ``records`` as its calibration records."""
+    import yaml
+
+    station = yaml.safe_load(station_path.read_text(encoding="utf-8"))
+    station["calibration"] = {**(station.get("calibration") or {}), "record": records}
+    path = station_path.with_name("station-calibrated.yaml")
+    path.write_text(yaml.safe_dump(station, sort_keys=False), encoding="utf-8")
+    return path
+
+
+def drive(engine: RunEngine, args: argparse.Namespace, display: Display | None = None) -> int:
+    """Execute with the display and the signal handling; print the outcome; return the exit code.
+
+    At the end: the run's key results (``procedures._cli_results``) and its report (written to
+    ``<runs>/<run>/report.html``) on stdout, or ``--quiet``'s one line, or ``--jsonl``'s ``done`` event.
+    """
+    started = time.monotonic()
     with signals_control(engine):
-        state = engine.execute()
+        if display is not None:
+            with display:
+                state = engine.execute()
+        else:
+            state = engine.execute()
     run = engine.store.get_run(engine.run_id)
+    report, report_problem = write_report(engine.store, run)
+    reason = (str(run["reason"]).splitlines() or [""])[0] if run["reason"] else None
     if args.jsonl:
-        print(json.dumps({"event": "done", "run_id": engine.run_id, "state": state, "reason": run["reason"]}))
+        print(json.dumps({"event": "done", "run_id": engine.run_id, "state": state, "reason": run["reason"],
+                          "results": result_summary(run), "report": report}, default=str))
+    elif args.quiet:
+        print(f"{engine.run_id} {state}")  # scripts read these two words: nothing else, ever
     else:
-        print(f"\nrun {engine.run_id}: {state}" + (f" — {run['reason']}" if run["reason"] else ""), file=sys.stderr)
-        if args.quiet:
-            print(f"{engine.run_id} {state}")
+        print(f"run {engine.run_id}: {state} after {_elapsed(time.monotonic() - started)}"
+              + (f" — {reason}" if reason else ""))
+        for line in result_lines(run):
+            print(line)
+        if report:
+            print(f"report: {report}")
+        elif report_problem:
+            print(f"report: not written ({report_problem})", file=sys.stderr)
     return EXIT_CODES.get(state, 1)
+
+
+def _elapsed(seconds: float) -> str:
+    seconds = int(seconds)
+    return f"{seconds // 60} min {seconds % 60:02d} s" if seconds >= 60 else f"{seconds} s"
+
+
+def write_report(store: RunStore, run: dict[str, Any]) -> tuple[str | None, str | None]:
+    """Write the run's HTML report to ``<runs>/<run>/report.html``; (its path, None) or (None, why not)."""
+    from procedures._report import render_report  # the report stack loads only here
+
+    try:
+        html = render_report(run, store.samples(run["id"]), store.events(run["id"]),
+                             store.superseded_samples(run["id"]))
+        path = store.run_dir(run["id"]) / "report.html"
+        path.write_text(html, encoding="utf-8")
+    except OSError as exc:
+        return None, f"cannot write it: {exc.strerror or exc}"
+    except Exception as exc:  # a report must never turn a measured run into an error
+        return None, f"{type(exc).__name__}: {(str(exc).splitlines() or [''])[0]}"
+    return str(path), None

@@ -1,14 +1,21 @@
-"""``instrument export RUN --csv|--json``: the run's samples (CSV) or everything (JSON)."""
+"""``instrument export RUN --csv|--json``: the run's samples (CSV) or everything (JSON).
+
+The JSON holds the run row, its samples, the failed samples measured again later and its events,
+and ``results``: every figure as ``{value, expanded_uncertainty, coverage_factor, confidence_interval,
+true, unit, budget}`` (SI), the test conditions and the deviations (docs/results.md).
+"""
 
 from __future__ import annotations
 
+import json
 import sys
 
 from procedures._cli_common import add_runs_dir, find_run, open_store, write_output
 
 
 def register(subparsers) -> None:
-    parser = subparsers.add_parser("export", help="export a run as CSV (samples) or JSON (run, samples, events)")
+    parser = subparsers.add_parser("export", help="export a run as CSV (samples) or JSON (run, samples, events, "
+                                                  "figures with their uncertainty, test conditions, deviations)")
     parser.add_argument("run_id", metavar="RUN")
     fmt = parser.add_mutually_exclusive_group(required=True)
     fmt.add_argument("--csv", action="store_true")
@@ -20,14 +27,19 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
     from procedures._report import export_csv, export_json  # the measurement stack loads only when needed
+    from procedures.kinds._export import normalised_results
 
     with open_store(args) as store:
         r = find_run(store, args.run_id)
         if r is None:
             return 1
         samples = store.samples(r["id"])
-        text = export_csv(samples) if args.csv else export_json(r, samples, store.events(r["id"]),
-                                                                store.superseded_samples(r["id"]))
+        if args.csv:
+            text = export_csv(samples)
+        else:
+            document = json.loads(export_json(r, samples, store.events(r["id"]), store.superseded_samples(r["id"])))
+            document["results"] = normalised_results(r)
+            text = json.dumps(document, indent=1, default=str) + "\n"
     if args.output:
         write_output(args.output, text)
     else:

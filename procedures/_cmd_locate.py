@@ -21,10 +21,15 @@ MAX_IMAGE_PIXELS = 64 * 1024 * 1024  # 8k × 8k; the cameras give 1024×1040 and
 
 
 def register(subparsers) -> None:
-    parser = subparsers.add_parser("locate", help="locate the laser cross in image files")
+    parser = subparsers.add_parser(
+        "locate", help="locate the laser cross in image files",
+        description="The sub-pixel centre, angle and line fits of the laser cross in each image file.",
+        epilog="exit codes: 0 a cross in every image, 1 an image could not be read or has no cross (one line "
+               "each), 2 bad arguments")
     parser.add_argument("images", nargs="+", metavar="IMAGE", help="8- or 16-bit greyscale image files")
     parser.add_argument("--json", action="store_true", help="one JSON object per image")
-    parser.add_argument("--saturation", type=int, default=None, help="saturation level (default by dtype)")
+    parser.add_argument("--saturation", type=int, default=None,
+                        help="grey level counted as saturated (default: the image type's maximum)")
     parser.set_defaults(handler=run)
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import sys
 
 from procedures._cli_common import (
+    RUN_EXIT_CODES,
     Display,
     add_display,
     add_runs_dir,
@@ -20,7 +21,10 @@ from procedures._errors import RunLocked
 
 
 def register(subparsers) -> None:
-    parser = subparsers.add_parser("resume", help="continue an interrupted or paused run")
+    parser = subparsers.add_parser(
+        "resume", help="continue an interrupted or paused run",
+        description="Continue a paused, failed or interrupted run from its last committed sample: the steps "
+                    "stored as measured are skipped, failed ones measured again.", epilog=RUN_EXIT_CODES)
     parser.add_argument("run_id", metavar="RUN", help="run id (a unique prefix is enough)")
     parser.add_argument("--station", default=None,
                         help="station YAML (default: the run's station snapshot), or 'sim' for a new simulated cell")
@@ -48,11 +52,13 @@ def run(args) -> int:
                             "wait for it to end or stop that process")
     seed = args.seed if args.seed is not None else _stored_seed(stored)
     mode = "jsonl" if args.jsonl else "quiet" if args.quiet else "bar"
+    display = Display(mode)
     with station_for(args.station, args.runs_dir, seed) as station:
-        with open_engine(args.runs_dir, run_id=stored["id"], station=station, listener=Display(mode),
-                         pause_handler=detach_at_once if args.jsonl else console_pause_handler,
-                         pause_timeout_s=args.pause_timeout) as engine:
-            return drive(engine, args)
+        with open_engine(args.runs_dir, run_id=stored["id"], station=station, listener=display,
+                         pause_handler=detach_at_once if args.jsonl else
+                         lambda engine: console_pause_handler(engine, display),
+                         pause_timeout_s=args.pause_timeout, store=args.store) as engine:
+            return drive(engine, args, display)
 
 
 def _stored_seed(run: dict) -> int:

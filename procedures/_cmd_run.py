@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import argparse
 import sys
 from pathlib import Path
 
 from procedures._cli_common import (
+    RUN_EXIT_CODES,
     Display,
     add_display,
     add_runs_dir,
@@ -19,10 +21,21 @@ from procedures._cli_common import (
 
 
 def register(subparsers) -> None:
-    parser = subparsers.add_parser("run", help="run a procedure on a station")
     built_in = ", ".join(sorted(path.stem for path in Path(__file__).parent.glob("*.yaml")))
+    parser = subparsers.add_parser(
+        "run", help="run a procedure on a station",
+        description="Dry-run the procedure on the station, then measure; every sample is committed to the run "
+                    "store before the next motion. Ctrl-C once pauses at the next safe point, twice aborts. At "
+                    "the end: the key results and the report's path.",
+        epilog=RUN_EXIT_CODES)
     parser.add_argument("procedure", metavar="PROCEDURE", help=f"procedure file, or a built-in name ({built_in})")
     parser.add_argument("--station", required=True, help="station YAML, or 'sim' to start the simulated cell")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="PARAMETER=VALUE",
+                        help="change one procedure parameter for this run, validated like the file and stored "
+                             "with the run (repeatable), e.g. --set cycles=5 --set settle_time_s=0.05")
+    parser.add_argument("--calibration", action="append", default=[], metavar="FILE",
+                        help="with --station sim: a calibration record to put in force (repeatable: displacement "
+                             "and angle records)")
     add_seed(parser, 0)
     parser.add_argument("--pause-timeout", type=seconds_value, default=3600.0,
                         help="seconds a paused run waits before it is left paused (non-interactive)")
@@ -31,14 +44,18 @@ def register(subparsers) -> None:
     parser.set_defaults(handler=run)
 
 
-def run(args) -> int:
+def run(args: argparse.Namespace) -> int:
     from procedures._api import open_engine
 
     mode = "jsonl" if args.jsonl else "quiet" if args.quiet else "bar"
-    with station_for(args.station, args.runs_dir, args.seed) as station:
-        with open_engine(args.runs_dir, procedure=args.procedure, station=station, listener=Display(mode),
-                         pause_handler=detach_at_once if args.jsonl else console_pause_handler,
-                         pause_timeout_s=args.pause_timeout) as engine:
-            if not args.jsonl:
-                print(f"run {engine.run_id} ({engine.procedure.procedure})", file=sys.stderr)
-            return drive(engine, args)
+    display = Display(mode)
+    with station_for(args.station, args.runs_dir, args.seed, args.calibration) as station:
+        with open_engine(args.runs_dir, procedure=args.procedure, station=station, listener=display,
+                         pause_handler=detach_at_once if args.jsonl else
+                         lambda engine: console_pause_handler(engine, display),
+                         pause_timeout_s=args.pause_timeout, store=args.store, overrides=args.overrides) as engine:
+            if mode == "bar":
+                changed = f" with {' '.join('--set ' + item for item in args.overrides)}" if args.overrides else ""
+                print(f"run {engine.run_id} ({engine.procedure.procedure}{changed}) in {engine.store.location}",
+                      file=sys.stderr)
+            return drive(engine, args, display)

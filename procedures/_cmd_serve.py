@@ -17,6 +17,9 @@ def register(subparsers) -> None:
                     "OPC UA are aborted then). Exit codes: 0 stopped, 2 bad arguments or address in use.")
     parser.add_argument("--runs-dir", "--runs", dest="runs_dir", default=os.environ.get("INSTRUMENT_RUNS", "runs"),
                         help="runs folder with runs.sqlite (default: $INSTRUMENT_RUNS or ./runs; created if missing)")
+    parser.add_argument("--store", default=None, metavar="URL",
+                        help="a shared run store, postgresql://USER@HOST/DATABASE (default: $INSTRUMENT_STORE, else "
+                             "the runs folder's runs.sqlite); frames and reports are read from the runs folder")
     parser.add_argument("--host", default="127.0.0.1",
                         help="address of the web view (default 127.0.0.1; another than loopback needs --allow-remote)")
     parser.add_argument("--port", type=int, default=8000, help="web view port (default 8000; 0 picks a free one)")
@@ -49,6 +52,15 @@ def run(args: argparse.Namespace) -> int:
     for name, port in (("--port", args.port), ("--opcua-port", args.opcua_port)):
         if not 0 <= port <= 65535:
             return _problem(f"{name} {port}: expected 0..65535")
+    if args.store is not None:
+        from procedures._store_db import STORE_ENV, StoreError, store_location
+
+        try:
+            store_location(args.store)
+        except StoreError as exc:
+            return _problem(str(exc))
+        # The readers, the OPC UA launcher and the runs it starts all open the store through this variable.
+        os.environ[STORE_ENV] = args.store
     runs_dir = Path(args.runs_dir)
     if runs_dir.exists() and not runs_dir.is_dir():
         return _problem(f"--runs-dir {runs_dir}: not a folder")

@@ -4,13 +4,16 @@ from __future__ import annotations
 
 import json
 
-from procedures._cli_common import add_runs_dir, find_run, open_store
+from procedures._cli_common import READ_EXIT_CODES, add_runs_dir, find_run, open_store
 
 
 def register(subparsers) -> None:
-    parser = subparsers.add_parser("show", help="show one run")
-    parser.add_argument("run_id", metavar="RUN")
-    parser.add_argument("--json", action="store_true", help="the run row as JSON")
+    parser = subparsers.add_parser(
+        "show", help="show one run",
+        description="One run: procedure, station, robot, state and reason, samples, software, calibration records, "
+                    "its results summary and its recent events.", epilog=READ_EXIT_CODES)
+    parser.add_argument("run_id", metavar="RUN", help="run id (a unique prefix is enough)")
+    parser.add_argument("--json", action="store_true", help="the run row as JSON (with the number of samples)")
     add_runs_dir(parser)
     parser.set_defaults(handler=run)
 
@@ -31,6 +34,9 @@ def run(args) -> int:
           + (f" — {r['reason']}" if r["reason"] else "")
           + f"\nsamples    {ok} ok, {len(samples) - ok} failed, {r['total_steps']} planned\n"
           f"software   {r['software_version']}\ncalibration {r['calibration_record_id'] or 'none'}")
+    if r.get("robot_serial"):
+        print(f"robot      {r.get('robot_manufacturer') or ''} {r.get('robot_model') or ''} serial {r['robot_serial']}"
+              f" (controller {r.get('robot_controller_version') or '?'})")
     from procedures.kinds import KINDS  # the measurement stack loads only for a run's results
 
     results, kind = r.get("results"), KINDS.get(r["procedure"])

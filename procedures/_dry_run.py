@@ -75,6 +75,11 @@ def offline_problems(todo: Sequence[Step], envelope: MotionEnvelope, reference_t
             opr = matrix_to_euler(tcp_in_m(reference_tcp_pose, tcp_pose))
             judged[key] += [Problem("visibility", problem) for problem in science.visibility_problems(opr)]
         problems += [Problem(p.kind, f"step {step.key}: {p.text}") for p in judged[key]]
+        for via in step.via:  # an approach's pre-position: only moved through, so only the envelope matters
+            try:
+                envelope.check_pose(np.asarray(via))
+            except MotionRefused as exc:
+                problems.append(Problem("envelope", f"step {step.key} (approach pre-position): {exc.cause}"))
     return problems
 
 

@@ -44,6 +44,7 @@ from procedures._truth import TruthLog
 from procedures.kinds import RESTING_SETUP, AnalysisContext, PoseReading, ProcedureBase, Setup, Step, kind_of
 
 _MAX_PROBLEMS_SHOWN = 50
+_PLURAL = {"cycle": "cycles", "axis": "axes", "group": "groups", "repeat": "repeats"}
 
 
 class _Detached(Exception):
@@ -138,7 +139,8 @@ class RunEngine:
         self._abort_reason = "operator request"
         self._resume_request = threading.Event()
         self._setup: Setup | None = None
-        self._durations: list[float] = []
+        self._durations: list[float] = []  # of this session's steps, their set-ups left out
+        self._setup_durations: list[float] = []
         self.compensators: list[Compensator] = []
         self.plan: list[Step] = []
 
@@ -220,6 +222,8 @@ class RunEngine:
                     f"; {len(to_repeat)} failed poses to measure again" if to_repeat else "")
             self._set_state(RunState.RUNNING, hook="run_resumed" if resuming else "run_started", reason=reason)
             self.dry_run(measured)
+            if "robot" in self.kind.devices(self.params):
+                self._record_robot_identity(run)
             for step in self.plan:
                 if step.index in measured:
                     continue
@@ -325,7 +329,9 @@ class RunEngine:
 
     # ---------------------------------------------------------------------------------- steps
     def _establish(self, setup: Setup) -> None:
+        started = time.monotonic()
         setup.establish(self._setup, self.station)
+        self._setup_durations.append(time.monotonic() - started)
         self.store.log(self.run_id, "setup", str(setup))
         self._emit("setup", setup=str(setup))
         self._setup = setup
@@ -333,6 +339,7 @@ class RunEngine:
     def _do_step(self, step: Step, context: StationStepContext, *, repeat: bool = False) -> PoseReading:
         """Move, measure and commit one step; ``repeat``: it failed in an earlier session."""
         t_start = time.time()
+        setups_before = sum(self._setup_durations)
         new_setup = step.setup != self._setup
         if new_setup and not step.setup.after_motion:
             self._establish(step.setup)
@@ -354,7 +361,7 @@ class RunEngine:
         if repeat:
             self._log("remeasured", f"{step.key}: failed in an earlier session, measured again "
                                     f"({'ok' if pose.ok else 'failed again'}); the failed sample is kept as superseded")
-        self._durations.append(time.time() - t_start)
+        self._durations.append(time.time() - t_start - (sum(self._setup_durations) - setups_before))
         event = self._emit("point_measured", step=step.index, key=step.key, label=step.label, ok=pose.ok,
                            error=pose.error, pose=pose.pose,
                            residual_rms=(pose.solved or {}).get("residual_rms"),
@@ -363,9 +370,41 @@ class RunEngine:
         self._emit_progress(step)
         return pose
 
+    def _record_robot_identity(self, run: dict[str, Any]) -> None:
+        """Store who the robot is, as its controller says (a run measured on another robot is refused)."""
+        identify = getattr(self.station.robot, "identity", None)
+        if identify is None:
+            self._log("robot_identity", "the robot adapter cannot tell its identity")
+            return
+        try:
+            identity = identify()
+        except DeviceError as exc:  # an older controller: the run goes on without it
+            self._log("robot_identity", f"the controller did not give its identity: {exc}")
+            return
+        stored = run.get("robot_serial")
+        if stored and stored != identity.serial_number:
+            raise RunError(f"this run was measured on the robot with serial {stored}; the controller now reports "
+                           f"serial {identity.serial_number}: resume it on that robot")
+        self.store.update_run(self.run_id, robot_manufacturer=identity.manufacturer, robot_model=identity.model,
+                              robot_serial=identity.serial_number,
+                              robot_controller_version=identity.controller_version)
+        self._log("robot_identity", f"{identity.manufacturer} {identity.model}, serial {identity.serial_number}, "
+                                    f"controller {identity.controller_version}")
+
     def _emit_progress(self, step: Step) -> None:
+        """Progress with where the run is in its plan (phase k/N, cycle, axis, group) and an ETA that
+        counts the set-ups still to come (each at the mean of those made so far)."""
         done = len(self.store.committed_steps(self.run_id))
         total = len(self.plan)
         recent = self._durations[-20:]
-        eta = float(np.mean(recent)) * (total - done) if recent else None
-        self._emit("progress", done=done, total=total, eta_s=eta, step=step.index, label=step.label)
+        pace = float(np.mean(recent)) if recent else None
+        remaining = self.plan[step.index + 1:]
+        setups_left = sum(1 for before, after in zip([step, *remaining], remaining) if after.setup != before.setup)
+        setup_s = float(np.mean(self._setup_durations)) if self._setup_durations else 0.0
+        eta = None if pace is None else pace * (total - done) + setup_s * setups_left
+        phases = list(dict.fromkeys(s.phase for s in self.plan))
+        where = {key: step.meta[key] for key in ("cycle", "axis", "group", "repeat") if key in step.meta}
+        extent = {_PLURAL[key]: len({s.meta.get(key) for s in self.plan if key in s.meta}) for key in where}
+        self._emit("progress", done=done, total=total, eta_s=eta, step=step.index, label=step.label,
+                   phase=step.phase, phase_index=phases.index(step.phase) + 1, phases=len(phases),
+                   pace_s=pace, setups_left=setups_left, setup_s=setup_s, **where, **extent)

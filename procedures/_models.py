@@ -150,6 +150,14 @@ class EnvelopeConfig(_Strict):
         return self
 
 
+class RatedConfig(_Strict):
+    """The robot's rated values (its data sheet), for the ISO 9283 test conditions: each optional."""
+
+    speed: float | None = Field(None, gt=0, description="rated TCP speed, m/s")
+    acceleration: float | None = Field(None, gt=0, description="rated TCP acceleration, m/s²")
+    payload: float | None = Field(None, gt=0, description="rated payload, kg")
+
+
 class CalibrationConfig(_Strict):
     record: str | list[str] | None = Field(
         None, description="calibration record file(s) in force (JSON): one path, a list (e.g. a displacement and "
@@ -188,6 +196,8 @@ class StationFile(_Strict):
 
     frames: FramesConfig
     envelope: EnvelopeConfig
+    rated: RatedConfig | None = Field(None, description="the robot's rated speed, acceleration and payload (ISO "
+                                      "9283 tests at rated values; the report gives the run's as a percentage)")
     calibration: CalibrationConfig = Field(default_factory=CalibrationConfig)
     simulation: SimulationConfig | None = None
     hooks: list[HookSpec] = Field(default_factory=list)

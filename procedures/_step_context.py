@@ -20,6 +20,7 @@ from drivers.interferometer import Interferometer
 from drivers.robot import MotionEnvelope, Robot
 from drivers.rotary_table import RotaryTable
 from procedures._live_frames import write_live_frames
+from procedures._models import StationFile
 from procedures._science import COMPONENTS, Compensator, MeasurementFailed, PoseMeasurement, Science
 from procedures._station import StationRuntime
 from procedures.kinds import MotionParameters, PoseReading, Step, retry_wait
@@ -63,6 +64,10 @@ class StationStepContext:
         self._log(kind, message)
 
     @property
+    def station(self) -> StationFile:
+        return self._station.model
+
+    @property
     def robot(self) -> Robot:
         return self._station.robot
 
@@ -87,7 +92,7 @@ class StationStepContext:
     def settle(self) -> None:
         self._wait(self._params.settle_time_s)
 
-    def measure_pose(self, step: Step) -> PoseReading:
+    def measure_pose(self, step: Step, *, direction: Mapping[str, int | None] | None = None) -> PoseReading:
         p = self._params
         last_error, frames_saved = "", []
         for attempt in range(p.retries_per_pose + 1):
@@ -113,20 +118,21 @@ class StationStepContext:
                 frames_saved += self._save_frames(step, triples, "ok")
             stamps = [f.timestamp for t in triples for f in t.values()]
             solved = _solved(measurements)
-            return PoseReading(ok=True, solved=solved, corrected=self._corrected(solved["pose"]),
+            return PoseReading(ok=True, solved=solved, corrected=self._corrected(solved["pose"], direction),
                                crosses={s: [m.crosses.get(s) for m in measurements] for s in SCREENS},
                                frames=frames_saved or None, t_measured=float(np.mean(stamps)), attempts=attempt + 1)
         return PoseReading(ok=False, error=last_error, frames=frames_saved or None, attempts=p.retries_per_pose + 1)
 
-    def _corrected(self, pose: list[float]) -> dict[str, Any] | None:
+    def _corrected(self, pose: list[float], direction: Mapping[str, int | None] | None) -> dict[str, Any] | None:
         if not self._compensators:
             return None
         corrected, flags = np.asarray(pose), []
         for compensator in self._compensators:
-            corrected, more = compensator.correct(corrected)
+            corrected, more = compensator.correct(corrected, direction)
             flags += list(more)
         return {"pose": [float(v) for v in corrected], "flags": flags,
-                "records": [c.record_id for c in self._compensators]}
+                "records": [c.record_id for c in self._compensators],
+                "direction": None if direction is None else dict(direction)}
 
     def _save_frames(self, step: Step, triples: Sequence[Mapping[str, Frame]], tag: str) -> list[str]:
         folder = self._run_dir / "frames"

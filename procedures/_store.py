@@ -1,18 +1,23 @@
-"""The durable run store: one SQLite database (WAL) in the runs folder.
+"""The durable run store: one database (SQLite in the runs folder by default, or a shared PostgreSQL).
 
 A run row holds what was asked (procedure, parameters, station snapshot, software version,
-calibration record in force) and how it ended (state, exit status, reason). A sample row holds one
-measured pose with everything needed to recompute it. Every sample is committed (and therefore on
-disk, WAL + ``synchronous=FULL``) before the engine sends the next motion, so a killed process
-loses nothing it reported; ``(run_id, step_index)`` is the primary key, so a resumed run can never
-write a step twice. A failed sample is the one exception: a later session measures its step again,
-and the failed row moves to ``superseded_samples`` in the same transaction (kept, never lost).
+calibration record in force), on which robot (manufacturer, model, serial, controller version, read
+from the controller) and how it ended (state, exit status, reason). A sample row holds one measured
+pose with everything needed to recompute it. Every sample is committed (on disk: SQLite WAL +
+``synchronous=FULL``, PostgreSQL's own commit) before the engine sends the next motion, so a killed
+process loses nothing it reported; ``(run_id, step_index)`` is the primary key, so a resumed run can
+never write a step twice. A failed sample is the one exception: a later session measures its step
+again, and the failed row moves to ``superseded_samples`` in the same transaction (kept, never lost).
 
 Exclusivity: a process that runs a run holds its **lease** (a row in ``leases`` with the pid, the
-host and a random token, taken in one ``BEGIN IMMEDIATE`` transaction). A second process is refused
-while the holder lives; a lease whose process is gone is taken over. Every state change is a
-compare-and-set on the state the engine last saw *and* on its lease token, so a process that lost
-its lease can never flip a run's state.
+host and a random token), checked and taken in one transaction (SQLite: ``BEGIN IMMEDIATE``;
+PostgreSQL: under an advisory lock on the run id). A second process is refused while the holder
+lives; a lease whose process is gone is taken over. Every state change is a compare-and-set on the
+state the engine last saw *and* on its lease token (PostgreSQL: the lease row held ``FOR SHARE``
+meanwhile, so a take-over waits for it), so a process that lost its lease can never flip a run's state.
+
+The databases themselves (connection, placeholders, transactions, the change counter) are in
+``procedures._store_db``; the schema and its versioned migrations in ``procedures._store_schema``.
 """
 
 from __future__ import annotations
@@ -20,10 +25,9 @@ from __future__ import annotations
 import json
 import os
 import socket
-import sqlite3
 import time
 import uuid
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -32,88 +36,11 @@ import numpy as np
 
 from procedures._errors import RunLocked, StateConflict
 from procedures._run_state import RunState
+from procedures._store_db import SQLITE_FILE, Database, DuplicateStep, StoreError, connect, store_location
 
-SCHEMA = """
-CREATE TABLE IF NOT EXISTS runs (
-    id TEXT PRIMARY KEY,
-    procedure TEXT NOT NULL,
-    procedure_name TEXT,
-    procedure_file TEXT,
-    procedure_text TEXT,
-    parameters TEXT NOT NULL,
-    station_name TEXT,
-    station_path TEXT,
-    station TEXT NOT NULL,
-    software_version TEXT,
-    calibration_record_id TEXT,
-    state TEXT NOT NULL,
-    exit_status TEXT,
-    reason TEXT,
-    total_steps INTEGER,
-    created REAL NOT NULL,
-    started REAL,
-    finished REAL,
-    host TEXT,
-    pid INTEGER,
-    results TEXT
-);
-CREATE TABLE IF NOT EXISTS samples (
-    run_id TEXT NOT NULL REFERENCES runs(id),
-    step_index INTEGER NOT NULL,
-    step_key TEXT NOT NULL,
-    phase TEXT NOT NULL,
-    label TEXT,
-    ok INTEGER NOT NULL,
-    error TEXT,
-    commanded TEXT,
-    solved TEXT,
-    corrected TEXT,
-    crosses TEXT,
-    reference TEXT,
-    meta TEXT,
-    frames TEXT,
-    t_start REAL,
-    t_measured REAL,
-    t_committed REAL,
-    PRIMARY KEY (run_id, step_index)
-);
-CREATE TABLE IF NOT EXISTS events (
-    run_id TEXT NOT NULL,
-    time REAL NOT NULL,
-    kind TEXT NOT NULL,
-    message TEXT,
-    data TEXT
-);
-CREATE TABLE IF NOT EXISTS superseded_samples (
-    run_id TEXT NOT NULL,
-    step_index INTEGER NOT NULL,
-    step_key TEXT NOT NULL,
-    phase TEXT NOT NULL,
-    label TEXT,
-    ok INTEGER NOT NULL,
-    error TEXT,
-    commanded TEXT,
-    solved TEXT,
-    corrected TEXT,
-    crosses TEXT,
-    reference TEXT,
-    meta TEXT,
-    frames TEXT,
-    t_start REAL,
-    t_measured REAL,
-    t_committed REAL,
-    superseded REAL NOT NULL
-);
-CREATE TABLE IF NOT EXISTS leases (
-    run_id TEXT PRIMARY KEY,
-    token TEXT NOT NULL,
-    host TEXT NOT NULL,
-    pid INTEGER NOT NULL,
-    process_start TEXT,
-    acquired REAL NOT NULL,
-    renewed REAL NOT NULL
-);
-"""
+__all__ = ["ROBOT_COLUMNS", "DuplicateStep", "Lease", "RunStore", "Sample", "StoreError"]
+
+ROBOT_COLUMNS = ("robot_manufacturer", "robot_model", "robot_serial", "robot_controller_version")
 
 _SAMPLE_COLUMNS = ("run_id, step_index, step_key, phase, label, ok, error, commanded, solved, corrected, crosses, "
                    "reference, meta, frames, t_start, t_measured, t_committed")
@@ -194,21 +121,32 @@ class Sample:
     t_committed: float | None
 
 
-class RunStore:
-    """The run database in ``runs_dir`` (``runs.sqlite``) plus a folder per run for files.
 
-    One connection per store object, used from one thread at a time (the engine's).
+
+class RunStore:
+    """The run database plus a folder per run for files (``runs_dir/<run id>/``).
+
+    Parameters
+    ----------
+    runs_dir : the runs folder: per-run files, and the SQLite database ``runs.sqlite`` by default
+    url : a ``postgresql://`` URL for a store shared by many cells; default ``$INSTRUMENT_STORE``, and
+        when that is unset or empty the runs folder's SQLite file. The per-run files stay in ``runs_dir``.
+    timeout : seconds to wait for a lock or a connection
+
+    One connection per store object, used from one thread at a time (the engine's). Opening a store
+    migrates it to the latest schema version (``procedures._store_schema``).
     """
 
-    def __init__(self, runs_dir: str | Path, *, timeout: float = 30.0) -> None:
+    def __init__(self, runs_dir: str | Path, *, url: str | None = None, timeout: float = 30.0) -> None:
         self.runs_dir = Path(runs_dir)
-        self.runs_dir.mkdir(parents=True, exist_ok=True)
-        self.path = self.runs_dir / "runs.sqlite"
-        self._db = sqlite3.connect(self.path, timeout=timeout, isolation_level=None, check_same_thread=False)
-        self._db.row_factory = sqlite3.Row
-        self._db.execute("PRAGMA journal_mode=WAL")
-        self._db.execute("PRAGMA synchronous=FULL")  # a commit is on disk when it returns
-        self._db.executescript(SCHEMA)
+        self.url = store_location(url)
+        if self.url is None:
+            self.runs_dir.mkdir(parents=True, exist_ok=True)
+        self._db: Database = connect(self.runs_dir, self.url, timeout=timeout)
+        self.dialect = self._db.dialect
+        self.location = self._db.location
+        """Where the store is, for messages: the SQLite file, or the URL without its password."""
+        self.path = self.runs_dir / SQLITE_FILE
 
     def close(self) -> None:
         self._db.close()
@@ -223,6 +161,11 @@ class RunStore:
         path = self.runs_dir / run_id
         path.mkdir(parents=True, exist_ok=True)
         return path
+
+    def version(self) -> int:
+        """A number that changes when another connection commits a change (SQLite's ``data_version``;
+        PostgreSQL: the ``store_changes`` counter, bumped by any change of runs, samples or events)."""
+        return self._db.version()
 
     # ------------------------------------------------------------------------------------ runs
     def create_run(
@@ -247,8 +190,7 @@ class RunStore:
             "created) VALUES (?,?,?,?,?,?,?,?,?,?,?,?,?,?)",
             (run_id, procedure, procedure_name, procedure_file, procedure_text, _dumps(parameters), station_name,
              station_path, _dumps(station), software_version, calibration_record_id, RunState.QUEUED.value,
-             total_steps,
-             time.time()),
+             total_steps, time.time()),
         )
         self.log(run_id, "created", f"{procedure} queued")
         return run_id
@@ -281,13 +223,21 @@ class RunStore:
         if lease is not None:
             where.append("EXISTS (SELECT 1 FROM leases WHERE leases.run_id = runs.id AND leases.token = ?)")
             args.append(lease.token)
-        changed = self._db.execute(f"UPDATE runs SET {', '.join(sets)} WHERE {' AND '.join(where)}",
-                                   (*values, *args)).rowcount
+        update = f"UPDATE runs SET {', '.join(sets)} WHERE {' AND '.join(where)}"
+        if lease is not None and self.dialect != "sqlite":
+            # The lease row is held FOR SHARE until the update commits: a take-over (which rewrites that
+            # row) waits for it, so the check and the change cannot be split by another process.
+            with self._db.transaction():
+                self._db.rows("SELECT 1 FROM leases WHERE run_id = ? AND token = ? FOR SHARE", (run_id, lease.token))
+                changed = self._db.execute(update, (*values, *args))
+        else:
+            changed = self._db.execute(update, (*values, *args))  # one statement: atomic on SQLite
         if changed != 1:
-            now_state = self._db.execute("SELECT state FROM runs WHERE id = ?", (run_id,)).fetchone()
+            now_state = self._db.rows("SELECT state FROM runs WHERE id = ?", (run_id,))
             holder = "" if lease is None or self._holds(lease) else "; this process no longer holds the run's lease"
             raise StateConflict(f"run {run_id}: cannot set {state.value}: it is "
-                                f"{now_state[0] if now_state else 'gone'}{holder} (changed by another process?)")
+                                f"{now_state[0]['state'] if now_state else 'gone'}{holder} (changed by another "
+                                "process?)")
         self.log(run_id, "state", state.value + (f": {reason}" if reason else ""))
 
     # ---------------------------------------------------------------------------------- leases
@@ -301,21 +251,19 @@ class RunStore:
         """
         host, pid, token = socket.gethostname(), os.getpid(), uuid.uuid4().hex
         now = time.time()
-        self._db.execute("BEGIN IMMEDIATE")  # one writer from here to COMMIT: check and take are atomic
-        try:
-            row = self._db.execute("SELECT * FROM leases WHERE run_id = ?", (run_id,)).fetchone()
-            previous = dict(row) if row is not None else None
+        with self._db.transaction(lock=f"lease:{run_id}"):  # check and take are one atomic step
+            rows = self._db.rows("SELECT * FROM leases WHERE run_id = ?", (run_id,))
+            previous = rows[0] if rows else None
             if previous is not None and self._lease_alive(previous):
                 since = time.strftime("%H:%M:%S", time.localtime(previous["acquired"]))
                 raise RunLocked(f"run {run_id} is already being run by pid {previous['pid']} on "
                                 f"{previous['host']} (since {since}); wait for it to end or stop that process")
             self._db.execute(
-                "INSERT OR REPLACE INTO leases (run_id, token, host, pid, process_start, acquired, renewed) "
-                "VALUES (?,?,?,?,?,?,?)", (run_id, token, host, pid, _process_start(pid), now, now))
-            self._db.execute("COMMIT")
-        except BaseException:
-            self._db.execute("ROLLBACK")
-            raise
+                "INSERT INTO leases (run_id, token, host, pid, process_start, acquired, renewed) "
+                "VALUES (?,?,?,?,?,?,?) ON CONFLICT (run_id) DO UPDATE SET token = excluded.token, "
+                "host = excluded.host, pid = excluded.pid, process_start = excluded.process_start, "
+                "acquired = excluded.acquired, renewed = excluded.renewed",
+                (run_id, token, host, pid, _process_start(pid), now, now))
         if previous is not None:
             stale = {key: previous[key] for key in ("pid", "host", "acquired")}
             self.log(run_id, "lease_taken_over",
@@ -333,12 +281,12 @@ class RunStore:
 
     def lease_holder(self, run_id: str) -> dict[str, Any] | None:
         """The live process holding the run's lease (pid, host, acquired ...), or None."""
-        row = self._db.execute("SELECT * FROM leases WHERE run_id = ?", (run_id,)).fetchone()
-        return dict(row) if row is not None and self._lease_alive(dict(row)) else None
+        rows = self._db.rows("SELECT * FROM leases WHERE run_id = ?", (run_id,))
+        return rows[0] if rows and self._lease_alive(rows[0]) else None
 
     def _holds(self, lease: Lease) -> bool:
-        return self._db.execute("SELECT 1 FROM leases WHERE run_id = ? AND token = ?",
-                                (lease.run_id, lease.token)).fetchone() is not None
+        return bool(self._db.rows("SELECT 1 AS held FROM leases WHERE run_id = ? AND token = ?",
+                                  (lease.run_id, lease.token)))
 
     @staticmethod
     def _lease_alive(row: dict[str, Any]) -> bool:
@@ -350,7 +298,8 @@ class RunStore:
         self._db.execute("UPDATE runs SET results = ? WHERE id = ?", (_dumps(results), run_id))
 
     def update_run(self, run_id: str, **fields: Any) -> None:
-        allowed = {"calibration_record_id", "total_steps", "station", "station_path"}
+        """Change some columns of a run: the calibration record id, the plan's size, the station, the robot."""
+        allowed = {"calibration_record_id", "total_steps", "station", "station_path", *ROBOT_COLUMNS}
         if not set(fields) <= allowed:
             raise ValueError(f"cannot update {sorted(set(fields) - allowed)}")
         for key, value in fields.items():
@@ -364,29 +313,65 @@ class RunStore:
         """
         if not run_id:
             raise KeyError("no run id given")
-        rows = self._db.execute("SELECT * FROM runs WHERE id = ?", (run_id,)).fetchall()
+        rows = self._db.rows("SELECT * FROM runs WHERE id = ?", (run_id,))
         if not rows:
-            rows = self._db.execute("SELECT * FROM runs WHERE substr(id, 1, ?) = ? ORDER BY created",
-                                    (len(run_id), run_id)).fetchall()
+            rows = self._db.rows("SELECT * FROM runs WHERE substr(id, 1, ?) = ? ORDER BY created",
+                                 (len(run_id), run_id))
         if not rows:
-            raise KeyError(f"no run {run_id!r} in {self.path}")
+            raise KeyError(f"no run {run_id!r} in {self.location}")
         if len(rows) > 1:
             raise KeyError(f"run id prefix {run_id!r} is ambiguous ({len(rows)} runs); give more characters")
-        run = dict(rows[0])
+        run = rows[0]
         for key in _JSON_RUN:
             run[key] = json.loads(run[key]) if run[key] else None
         run["state"] = RunState(run["state"])
         return run
 
-    def list_runs(self) -> list[dict[str, Any]]:
-        """Every run, oldest first: the run row's summary columns plus its number of samples."""
-        rows = self._db.execute(
+    def list_runs(self, *, states: Iterable[RunState] = (), procedure: str | None = None,
+                  robot: str | None = None, last: int | None = None) -> list[dict[str, Any]]:
+        """Runs, oldest first: the run row's summary columns plus its number of samples.
+
+        Parameters
+        ----------
+        states : only runs in one of these states (all when empty)
+        procedure : only runs of this procedure kind (e.g. ``iso9283_repeatability``)
+        robot : only runs on the robot with this serial number
+        last : only the newest ``last`` of those
+        """
+        where: list[str] = []
+        args: list[Any] = []
+        wanted = [RunState(state).value for state in states]
+        if wanted:
+            where.append(f"r.state IN ({', '.join('?' * len(wanted))})")
+            args += wanted
+        if procedure is not None:
+            where.append("r.procedure = ?")
+            args.append(procedure)
+        if robot is not None:
+            where.append("r.robot_serial = ?")
+            args.append(robot)
+        query = (
             "SELECT r.id, r.procedure, r.procedure_name, r.station_name, r.state, r.exit_status, r.reason, "
-            "r.created, r.started, r.finished, r.total_steps, "
-            "(SELECT COUNT(*) FROM samples s WHERE s.run_id = r.id) AS samples "
-            "FROM runs r ORDER BY r.created"
-        ).fetchall()
-        return [{**dict(row), "state": RunState(row["state"])} for row in rows]
+            "r.created, r.started, r.finished, r.total_steps, r.robot_manufacturer, r.robot_model, r.robot_serial, "
+            "r.robot_controller_version, (SELECT COUNT(*) FROM samples s WHERE s.run_id = r.id) AS samples "
+            "FROM runs r" + (f" WHERE {' AND '.join(where)}" if where else "") + " ORDER BY r.created DESC, r.id")
+        if last is not None:
+            query += " LIMIT ?"
+            args.append(max(int(last), 0))
+        rows = self._db.rows(query, args)
+        return [{**row, "samples": int(row["samples"]), "state": RunState(row["state"])} for row in reversed(rows)]
+
+    def robot_runs(self, serial: str, *, procedure: str | None = None,
+                   states: Iterable[RunState] = (RunState.FINISHED,)) -> list[dict[str, Any]]:
+        """Every run on the robot with serial number ``serial`` (whole rows, results decoded), oldest first."""
+        return [self.get_run(row["id"]) for row in self.list_runs(states=states, procedure=procedure, robot=serial)]
+
+    def robots(self) -> list[dict[str, Any]]:
+        """The robots the store has runs of: serial, manufacturer, model, number of runs, first and last run time."""
+        return self._db.rows(
+            "SELECT robot_serial AS serial, MAX(robot_manufacturer) AS manufacturer, MAX(robot_model) AS model, "
+            "COUNT(*) AS runs, MIN(created) AS first, MAX(created) AS last FROM runs "
+            "WHERE robot_serial IS NOT NULL GROUP BY robot_serial ORDER BY robot_serial")
 
     # --------------------------------------------------------------------------------- samples
     def add_sample(
@@ -412,52 +397,47 @@ class RunStore:
         """Insert and commit one sample.
 
         A step stored as *failed* is measured again by a later session: its failed row moves to
-        ``superseded_samples`` in the same transaction. Raises ``sqlite3.IntegrityError`` if the
-        step is already stored as measured (a resumed run must never measure such a step again).
+        ``superseded_samples`` in the same transaction. Raises ``DuplicateStep`` if the step is already
+        stored as measured (a resumed run must never measure such a step again).
         """
         values = (run_id, step_index, step_key, phase, label, int(ok), error, _dumps(commanded), _dumps(solved),
                   _dumps(corrected), _dumps(crosses), _dumps(reference), _dumps(meta), _dumps(frames), t_start,
                   t_measured, time.time())
-        self._db.execute("BEGIN IMMEDIATE")
-        try:
+        with self._db.transaction():
             self._db.execute(
                 f"INSERT INTO superseded_samples ({_SAMPLE_COLUMNS}, superseded) SELECT {_SAMPLE_COLUMNS}, ? "
                 "FROM samples WHERE run_id = ? AND step_index = ? AND ok = 0", (time.time(), run_id, step_index))
             self._db.execute("DELETE FROM samples WHERE run_id = ? AND step_index = ? AND ok = 0", (run_id, step_index))
             self._db.execute(f"INSERT INTO samples ({_SAMPLE_COLUMNS}) VALUES ({', '.join('?' * 17)})", values)
-            self._db.execute("COMMIT")
-        except BaseException:
-            self._db.execute("ROLLBACK")
-            raise
 
     def committed_steps(self, run_id: str) -> set[int]:
         """Steps with a stored sample, measured or failed."""
-        rows = self._db.execute("SELECT step_index FROM samples WHERE run_id = ?", (run_id,)).fetchall()
-        return {row[0] for row in rows}
+        return {int(row["step_index"]) for row in
+                self._db.rows("SELECT step_index FROM samples WHERE run_id = ?", (run_id,))}
 
     def measured_steps(self, run_id: str) -> set[int]:
         """Steps stored as measured (``ok``): the ones a resumed run skips; failed ones are measured again."""
-        rows = self._db.execute("SELECT step_index FROM samples WHERE run_id = ? AND ok = 1", (run_id,)).fetchall()
-        return {row[0] for row in rows}
+        return {int(row["step_index"]) for row in
+                self._db.rows("SELECT step_index FROM samples WHERE run_id = ? AND ok = 1", (run_id,))}
 
     def superseded_samples(self, run_id: str) -> list[Sample]:
         """Failed samples that a later session measured again, oldest first."""
-        rows = self._db.execute(f"SELECT {_SAMPLE_COLUMNS} FROM superseded_samples WHERE run_id = ? "
-                                "ORDER BY superseded, step_index", (run_id,))
-        return list(self._decode(rows))
+        return self._decode(self._db.rows(f"SELECT {_SAMPLE_COLUMNS} FROM superseded_samples WHERE run_id = ? "
+                                          "ORDER BY superseded, step_index", (run_id,)))
 
     def samples(self, run_id: str) -> list[Sample]:
-        rows = self._db.execute("SELECT * FROM samples WHERE run_id = ? ORDER BY step_index", (run_id,))
-        return list(self._decode(rows))
+        return self._decode(self._db.rows(f"SELECT {_SAMPLE_COLUMNS} FROM samples WHERE run_id = ? "
+                                          "ORDER BY step_index", (run_id,)))
 
     @staticmethod
-    def _decode(rows: Iterator[sqlite3.Row]) -> Iterator[Sample]:
-        for row in rows:
-            data = dict(row)
+    def _decode(rows: list[dict[str, Any]]) -> list[Sample]:
+        samples = []
+        for data in rows:
             for key in _JSON_SAMPLE:
                 data[key] = json.loads(data[key]) if data[key] else None
             data["ok"] = bool(data["ok"])
-            yield Sample(**data)
+            samples.append(Sample(**data))
+        return samples
 
     # ---------------------------------------------------------------------------------- events
     def log(self, run_id: str, kind: str, message: str = "", data: dict | None = None) -> None:
@@ -465,6 +445,5 @@ class RunStore:
                          (run_id, time.time(), kind, message, _dumps(data)))
 
     def events(self, run_id: str) -> list[dict]:
-        rows = self._db.execute("SELECT time, kind, message, data FROM events WHERE run_id = ? ORDER BY rowid",
-                                (run_id,)).fetchall()
-        return [{**dict(row), "data": json.loads(row["data"]) if row["data"] else None} for row in rows]
+        rows = self._db.rows("SELECT time, kind, message, data FROM events WHERE run_id = ? ORDER BY id", (run_id,))
+        return [{**row, "data": json.loads(row["data"]) if row["data"] else None} for row in rows]

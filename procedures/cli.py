@@ -25,6 +25,7 @@ from pathlib import Path
 from instrument import __version__
 from procedures import (
     _cmd_export,
+    _cmd_history,
     _cmd_locate,
     _cmd_report,
     _cmd_resume,
@@ -38,20 +39,41 @@ from procedures import (
 from procedures._errors import ConfigError, RunError
 from procedures._files import InputRefused
 
-COMMANDS = (_cmd_locate, _cmd_sim, _cmd_validate, _cmd_run, _cmd_resume, _cmd_runs, _cmd_show, _cmd_report,
-            _cmd_export, _cmd_serve)
+COMMANDS = (_cmd_locate, _cmd_sim, _cmd_validate, _cmd_run, _cmd_resume, _cmd_runs, _cmd_show, _cmd_history,
+            _cmd_report, _cmd_export, _cmd_serve)
+EXIT_CODES_HELP = """exit codes:
+  0    done (run/resume: the run FINISHED)
+  1    failed: bad input, no such run or store, or the run FAILED (one line on stderr, never a traceback)
+  2    run/resume: the run was ABORTED (second Ctrl-C, SIGTERM, SIGHUP); any command: bad arguments (usage)
+  3    run/resume: the run was left PAUSED (continue it with: instrument resume RUN)
+  130  interrupted before a run started
+
+environment: INSTRUMENT_RUNS (runs folder, default ./runs), INSTRUMENT_STORE (postgresql:// URL of a shared
+run store; default: the runs folder's runs.sqlite)"""
 ERROR_LOG = "instrument-errors.log"
+COMMON_HELP = {
+    "run_id": "run id (a unique prefix is enough)",
+    "csv": "one CSV row per sample (SI columns, the unit in each name)",
+    "json": "the run, its samples, superseded samples and events as one JSON document",
+}
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="instrument",
         description="Robot pose repeatability (ISO 9283) with a cross-laser optical pose reference.",
+        epilog=EXIT_CODES_HELP, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--version", action="version", version=f"instrument {__version__}")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
     for command in COMMANDS:
         command.register(subparsers)
+    for sub in subparsers.choices.values():  # arguments a command left without a help text get the common one
+        for action in sub._actions:
+            if action.help is None and action.dest in COMMON_HELP:
+                action.help = COMMON_HELP[action.dest]
+        if sub.epilog is None:
+            sub.epilog = "exit codes: 0 done, 1 bad input or no such run (one line on stderr), 2 bad arguments"
     return parser
 
 

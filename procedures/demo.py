@@ -20,7 +20,7 @@ import numpy as np
 import yaml
 
 from procedures._api import open_engine
-from procedures._cli_common import Display
+from procedures._cli_display import Display
 from procedures._loading import resolve_procedure_path
 from procedures._report import render_report
 from procedures._run_state import RunState
@@ -52,38 +52,95 @@ def write_procedure(name: str, directory: Path, overrides: dict[str, Any]) -> Pa
     return path
 
 
-def run_procedure(runs_dir: Path, procedure: Path, station: Path, quiet: bool) -> dict[str, Any]:
+class DemoProgress:
+    """Where the demo is (run k of n) and how long the runs after the current one will take: their
+    planned poses and set-ups at the pace and set-up time seen so far, plus each finished run's own
+    overhead (dry run, analysis), so the ETA covers the whole demo, set-up waits included."""
+
+    def __init__(self, plans: list[tuple[int, int]]) -> None:
+        self.plans = plans  # (steps, set-ups) per run, in order
+        self.current = 0
+        self.overheads: list[float] = []
+        self.display: Display | None = None
+
+    def later_s(self) -> float:
+        event = self.display.last_progress if self.display is not None else {}
+        pace, setup_s = event.get("pace_s") or 0.0, event.get("setup_s") or 0.0
+        overhead = float(np.mean(self.overheads)) if self.overheads else 0.0
+        return sum(steps * pace + setups * setup_s + overhead for steps, setups in self.plans[self.current + 1:])
+
+
+def plan_sizes(procedures: list[Path], station: Path) -> list[tuple[int, int]]:
+    """Planned poses and set-up changes of each procedure on the station (the plans are pure functions)."""
+    from procedures._loading import load_procedure, load_station
+    from procedures.kinds import kind_of
+
+    model = load_station(station)
+    sizes = []
+    for path in procedures:
+        procedure = load_procedure(path)
+        plan = kind_of(procedure).plan(procedure.parameters, model)
+        sizes.append((len(plan), sum(1 for a, b in zip(plan, plan[1:]) if a.setup != b.setup) + 1))
+    return sizes
+
+
+def run_procedure(runs_dir: Path, procedure: Path, station: Path, quiet: bool,
+                  progress: DemoProgress | None = None) -> dict[str, Any]:
     started = time.monotonic()
-    with open_engine(runs_dir, procedure=procedure, station=station,
-                     listener=Display("quiet" if quiet else "bar")) as engine:
-        print(f"\n== {engine.procedure.procedure}: run {engine.run_id}", file=sys.stderr)
-        state = engine.execute()
+    phase = (progress.current + 1, len(progress.plans)) if progress is not None else None
+    display = Display("quiet" if quiet else "bar", phase=phase,
+                      later_s=progress.later_s if progress is not None else None)
+    if progress is not None:
+        progress.display = display
+    with open_engine(runs_dir, procedure=procedure, station=station, listener=display) as engine:
+        where = f"{phase[0]}/{phase[1]} " if phase else ""
+        print(f"\n== {where}{engine.procedure.procedure}: run {engine.run_id}", file=sys.stderr, flush=True)
+        with display:
+            state = engine.execute()
         run = engine.store.get_run(engine.run_id)
-    print(f"\n   {state} in {time.monotonic() - started:.0f} s" + (f" — {run['reason']}" if run["reason"] else ""),
-          file=sys.stderr)
+    elapsed = time.monotonic() - started
+    print(f"   {state} in {elapsed:.0f} s" + (f" — {run['reason']}" if run["reason"] else ""), file=sys.stderr,
+          flush=True)
     if state != RunState.FINISHED:
         raise SystemExit(f"demo: {procedure.name} ended {state}: {run['reason']}")
+    if progress is not None:
+        event = display.last_progress
+        progress.overheads.append(max(elapsed - (event.get("pace_s") or 0.0) * event.get("total", 0)
+                                      - (event.get("setup_s") or 0.0) * progress.plans[progress.current][1], 0.0))
+        progress.current += 1
     return run
 
 
 def iso_table(results: dict[str, Any]) -> str:
-    """The paper's Table 1: RP per point, measured beside the cell's ground truth."""
-    header = ("| point | RP_l measured (µm) | RP_l true (µm) | RP_a meas./true (″) | RP_b meas./true (″) "
-              "| RP_c meas./true (″) | AP_P measured (µm) |")
+    """The paper's Table 1: RP per point, measured (± U, k = 2, where evaluated) beside the cell's ground truth."""
+    header = ("| point | RP_l measured ± U (µm) [95 % CI] | RP_l true (µm) | RP_a meas. ± U / true (″) "
+              "| RP_b meas. ± U / true (″) | RP_c meas. ± U / true (″) | AP_P measured (µm) |")
     lines = [header, "|" + " --- |" * 7]
     for point in results["order"]:
         entry = results["points"][point]
         m, t = entry["stats"], entry.get("true_stats") or {}
+        figures = ((results.get("figures") or {}).get("points") or {}).get(point, {})
 
-        def pair(key: str, m=m, t=t) -> str:
+        def spread(key: str, scale: float, m=m, figures=figures) -> str:
+            figure = figures.get(key) or {}
+            if figure.get("expanded_uncertainty") is None:
+                return f"{m[key] / scale:.2f}"
+            return f"{figure['value'] / scale:.2f} ± {figure['expanded_uncertainty'] / scale:.2f}"
+
+        def pair(key: str, t=t) -> str:
             true = f"{t[key] / ARCSEC:.2f}" if key in t else "–"
-            return f"{m[key] / ARCSEC:.2f} / {true}"
+            return f"{spread(key, ARCSEC)} / {true}"
 
-        lo, hi = m["rp_l_ci"]
+        interval = f" [{m['rp_l_ci'][0] * 1e6:.2f}, {m['rp_l_ci'][1] * 1e6:.2f}]" if m.get("rp_l_ci") else ""
         true_l = f"{t['rp_l'] * 1e6:.2f}" if "rp_l" in t else "–"
-        lines.append(f"| {point} | {m['rp_l'] * 1e6:.2f} [{lo * 1e6:.2f}, {hi * 1e6:.2f}] | {true_l} | "
+        lines.append(f"| {point} | {spread('rp_l', 1e-6)}{interval} | {true_l} | "
                      f"{pair('rp_a')} | {pair('rp_b')} | {pair('rp_c')} | {m['ap_p'] * 1e6:.1f} |")
     return "\n".join(lines)
+
+
+def deviation_lines(results: dict[str, Any]) -> list[str]:
+    """The run's deviations from ISO 9283 and the measurement system's warnings, one line each."""
+    return [f"  {d['severity']}: {d['message']}" for d in results.get("deviations") or []]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -93,12 +150,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cycles", type=int, default=30, help="ISO cycles (paper: 30)")
     parser.add_argument("--quick", action="store_true", help="coarser calibration grids (a smoke run)")
     parser.add_argument(
-        "--quiet", action="store_true", help="no progress bars (the default when stderr is not a terminal)"
-    )
+        "--quiet", action="store_true",
+        help="no progress (by default: a live display on a terminal, a heartbeat line every 10 s elsewhere)")
     parser.add_argument("--time-scale", type=float, default=4.0,
                         help="simulated seconds per wall second for robot and table motion (default 4)")
     args = parser.parse_args(argv)
-    args.quiet = args.quiet or not sys.stderr.isatty()  # a progress bar only makes sense on a terminal
 
     from sim_devices.cell import SimCell
 
@@ -113,22 +169,26 @@ def main(argv: list[str] | None = None) -> int:
                 overrides["cycles"] = args.cycles
             procedures[name] = write_procedure(name, cell_dir, overrides)
 
+        progress = DemoProgress(plan_sizes(list(procedures.values()), cell.station_path))
         displacement = run_procedure(args.runs_dir, procedures["displacement_calibration"], cell.station_path,
-                                     args.quiet)
-        angle = run_procedure(args.runs_dir, procedures["angle_calibration"], cell.station_path, args.quiet)
+                                     args.quiet, progress)
+        angle = run_procedure(args.runs_dir, procedures["angle_calibration"], cell.station_path, args.quiet, progress)
 
         station = yaml.safe_load(cell.station_path.read_text(encoding="utf-8"))
         station["calibration"] = {"record": [displacement["results"]["record_path"], angle["results"]["record_path"]]}
         calibrated = cell_dir / "station-calibrated.yaml"
         calibrated.write_text(yaml.safe_dump(station, sort_keys=False), encoding="utf-8")
-        iso = run_procedure(args.runs_dir, procedures["iso9283_repeatability"], calibrated, args.quiet)
+        iso = run_procedure(args.runs_dir, procedures["iso9283_repeatability"], calibrated, args.quiet, progress)
 
     with RunStore(args.runs_dir) as store:
         report_path = store.run_dir(iso["id"]) / "report.html"
         report_path.write_text(render_report(iso, store.samples(iso["id"]), store.events(iso["id"])),
                                encoding="utf-8")
-    print("\nISO 9283 pose repeatability on the simulated cell (measured, compensated; truth from the twins):")
+    print("\nISO 9283 pose repeatability on the simulated cell (measured, compensated, ± U with k = 2; truth from "
+          "the twins):")
     print(iso_table(iso["results"]))
+    print("\ndeviations and warnings:")
+    print("\n".join(deviation_lines(iso["results"])) or "  none")
     print(f"\ncalibration records: {displacement['results']['record_path']}\n"
           f"                     {angle['results']['record_path']}")
     print(f"report: {report_path}")

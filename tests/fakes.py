@@ -20,8 +20,9 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from drivers import DeviceFault
 from drivers.camera import Frame, GrabFailed
-from drivers.interferometer import DatumLost
+from drivers.interferometer import DatumLost, EnvironmentReading, FeedGap, HeadOptics
 from drivers.robot import MotionEnvelope, ProtectiveStop, RobotIdentity, RobotState
 from drivers.rotary_table import TableState
 from procedures._geometry import euler_to_matrix, matrix_to_euler, tcp_in_m, ur_to_matrix
@@ -94,6 +95,13 @@ class FakeCell:
         self.fail_measures = 0
         self.lose_datum_on_reads: set[int] = set()  # interferometer.average calls (1-based) that lose the datum
         self.reads = 0
+        # The air along the beam (K, Pa, fraction) and the material sensor; environment() calls (1-based) that
+        # find no fresh reading, or a faulty sensor.
+        self.air = {"air_temperature_k": 301.15, "pressure_pa": 92_000.0, "relative_humidity": 0.3}
+        self.material_k = 301.35
+        self.environment_gaps: set[int] = set()
+        self.environment_faults: set[int] = set()
+        self.environment_reads = 0
         self.log: list[str] = []
         self.robot = FakeRobot(self)
         self.cameras = {s: FakeCamera(self, s) for s in "xyz"}
@@ -251,11 +259,38 @@ class FakeTable:
 
 
 class FakeInterferometer:
+    """Reads the true displacement as a head with the default nominal air would in the cell's air:
+    scaled by n(air)/n(nominal) (the real head's behaviour), so only a compensated reading is true."""
+
     name = "interferometer"
 
     def __init__(self, cell: FakeCell) -> None:
         self.cell = cell
         self.datum = 0.0
+        self.optics = HeadOptics()
+
+    def _index_ratio(self) -> float:
+        from instrument.environment import AirConditions, wavelength_compensation_factor
+
+        o, air = self.optics, self.cell.air
+        nominal = AirConditions(o.nominal_air_temperature, o.nominal_pressure, o.nominal_relative_humidity,
+                                o.nominal_co2)
+        actual = AirConditions(air["air_temperature_k"], air["pressure_pa"], air["relative_humidity"], o.air_co2)
+        return 1.0 / wavelength_compensation_factor(actual, nominal, o.vacuum_wavelength)
+
+    def environment(self, max_age: float | None = None, *, strict: bool = True) -> EnvironmentReading:
+        c = self.cell
+        c.environment_reads += 1
+        if c.environment_reads in c.environment_gaps:
+            raise FeedGap(self.name, "environment", "no environmental reading received yet (fake)")
+        if c.environment_reads in c.environment_faults and strict:
+            raise DeviceFault(self.name, "environment", "sensor fault: air_temperature (fake)")
+        now = time.time()
+        return EnvironmentReading(timestamp=now, received=now, counter=c.environment_reads % 16,
+                                  air_temperature_k=c.air["air_temperature_k"], pressure_pa=c.air["pressure_pa"],
+                                  relative_humidity=c.air["relative_humidity"],
+                                  material_temperatures_k=(c.material_k, float("nan"), float("nan")),
+                                  material_fitted=(True, False, False), faults=())
 
     def open(self) -> None:
         pass
@@ -279,7 +314,7 @@ class FakeInterferometer:
             raise DatumLost(self.name, "average", "beam not OK at sample 12 (fake beam break)")
         if not self.has_datum:
             raise DatumLost(self.name, "average", "no datum set since power-on or the last beam break")
-        return self._axis_value() - self.datum + self.cell.rng.normal(0, 0.1e-6)
+        return (self._axis_value() - self.datum) * self._index_ratio() + self.cell.rng.normal(0, 0.1e-6)
 
 
 class FakeOperator:
@@ -303,13 +338,24 @@ class FakeCompensator:
     def __init__(self, record: dict) -> None:
         self.record = record
         self.record_id = record["record_id"]
+        self.directions_seen: list = []
 
-    def correct(self, pose):
+    def correct(self, pose, direction=None):
+        self.directions_seen.append(direction)
         pose = np.array(pose, dtype=float)
         for name, model in self.record["components"].items():
             i = COMPONENTS.index(name)
             pose[i] -= np.polyval(model["poly"], pose[i])
         return pose, []
+
+    def info(self) -> dict:
+        """No held-out evaluation: a run with only fake records has no uncertainty budget."""
+        components = list(self.record["components"])
+        return {"id": self.record_id, "path": None, "components": components,
+                "methods": dict.fromkeys(components, "polynomial (fake)"),
+                "validity": {c: m["range"] for c, m in self.record["components"].items()},
+                "approach_directions": {c: [] for c in components}, "bidirectional": False, "date": "",
+                "run_id": "", "references": [], "temperature_c": None, "evaluation": {}}
 
 
 class FakeScience:

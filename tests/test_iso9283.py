@@ -220,3 +220,15 @@ def test_bad_options():
         pose_accuracy(poses, [0, 0, 0, 0, 0, np.inf])
     with pytest.raises(ISO9283Error, match="bootstrap_samples"):
         pose_accuracy(np.random.default_rng(0).normal(size=(10, 6)), np.zeros(6), confidence=0.9, bootstrap_samples=10)
+
+
+def test_rp_l_interval_never_collapses_for_small_samples():
+    """n = 5: the delta-method variance can come out negative; the interval must still have a width."""
+    rng = np.random.default_rng(3)
+    widths = []
+    for _ in range(300):
+        poses = np.zeros((5, 6))
+        poses[:, :3] = rng.normal(0.0, 10e-6, (5, 3))
+        low, high = pose_repeatability(poses, confidence=0.95).rp_l_ci
+        widths.append(high - low)
+    assert min(widths) > 0.0

@@ -106,5 +106,6 @@ def test_runs_list_and_robot_page_update_without_reloading(browser, tmp_path):
         assert page.evaluate("window.sameDocument") is True
         page.goto(endpoints["web"] + "robots")
         page.wait_for_function("document.querySelectorAll('#chart circle.rp').length === 5", timeout=30_000)
-        assert "simulated cell" in (page.text_content("#robots") or "")
+        # The run recorded the robot its controller named (the UR twin answers like a UR5): grouped by serial.
+        assert "Universal Robots UR5 serial" in (page.text_content("#robots") or "")
         page.close()

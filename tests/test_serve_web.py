@@ -64,9 +64,10 @@ def test_runs_list_filters_and_current(client, store):
     assert every["current"] == second
     assert [r["id"] for r in client.get("/api/runs", params={"q": "second"}).json()["runs"]] == [second]
     assert client.get("/api/runs", params={"state": "failed"}).json()["runs"] == []
-    only = client.get("/api/runs", params={"robot": "station:fake cell"}).json()["runs"]
-    assert [r["id"] for r in only] == [first]
-    assert only[0]["done"] == only[0]["total"] == 5 + 3 * 5
+    # The fake cells' robot reports one serial (tests/fakes.py): both runs were measured on it.
+    only = client.get("/api/runs", params={"robot": "serial:20235500123"}).json()["runs"]
+    assert [r["id"] for r in only] == [second, first]
+    assert only[1]["done"] == only[1]["total"] == 5 + 3 * 5
 
 
 def test_points_and_figures_are_the_stored_ones(client, store):
@@ -89,14 +90,14 @@ def test_points_and_figures_are_the_stored_ones(client, store):
     assert detail["run"]["phase"] == "iso" and detail["run"]["cycle"] == 2
 
 
-def test_robot_history_groups_by_station_until_runs_carry_identity(client, store):
+def test_robot_history_groups_by_the_serial_the_controller_reported(client, store):
     _, first, second = store
     robots = {r["key"]: r for r in client.get("/api/robots").json()["robots"]}
-    assert set(robots) == {"station:fake cell", "station:second cell"}
-    assert all(r["source"] == "station" and r["iso_runs"] == 1 for r in robots.values())
-    history = client.get("/api/robots/history", params={"key": "station:second cell"}).json()["history"]
-    assert [h["run"]["id"] for h in history] == [second]
-    assert set(history[0]["points"]) == {"P1", "P2", "P3", "P4", "P5"} and history[0]["points"]["P1"]["n"] == 4
+    assert set(robots) == {"serial:20235500123"}  # two stations, one robot (its serial read at run start)
+    assert all(r["source"] == "identity" and r["iso_runs"] == 2 for r in robots.values())
+    history = client.get("/api/robots/history", params={"key": "serial:20235500123"}).json()["history"]
+    assert [h["run"]["id"] for h in history] == [first, second]
+    assert set(history[1]["points"]) == {"P1", "P2", "P3", "P4", "P5"} and history[1]["points"]["P1"]["n"] == 4
 
 
 def test_report_pages_and_unknown_runs(client, store):

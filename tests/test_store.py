@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from procedures._api import open_engine
-from procedures._store import RunStore
+from procedures._store import DuplicateStep, RunStore
 from tests.fakes import FakeCell, FakeScience, write_station
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -21,7 +21,7 @@ def test_a_step_cannot_be_stored_twice(tmp_path):
     with RunStore(tmp_path) as store:
         run_id = store.create_run(procedure="iso9283_repeatability", parameters={}, station={}, software_version="t")
         store.add_sample(run_id, 0, "iso/c000/P1", "iso", solved={"pose": [0.0] * 6})
-        with pytest.raises(sqlite3.IntegrityError):
+        with pytest.raises(DuplicateStep):
             store.add_sample(run_id, 0, "iso/c000/P1", "iso")
         assert store.committed_steps(run_id) == {0}
         assert store.get_run(run_id[:6])["id"] == run_id  # a prefix is enough
@@ -29,8 +29,8 @@ def test_a_step_cannot_be_stored_twice(tmp_path):
 
 def test_store_uses_wal_and_full_sync(tmp_path):
     with RunStore(tmp_path) as store:
-        assert store._db.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
-        assert store._db.execute("PRAGMA synchronous").fetchone()[0] == 2  # FULL
+        assert store._db.rows("PRAGMA journal_mode")[0]["journal_mode"] == "wal"
+        assert store._db.rows("PRAGMA synchronous")[0]["synchronous"] == 2  # FULL
 
 
 def _committed(db: Path) -> int:

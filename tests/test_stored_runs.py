@@ -11,6 +11,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import math
 import sqlite3
 from pathlib import Path
 
@@ -52,7 +53,8 @@ def test_stored_runs_are_listed_shown_reported_and_exported(runs_dir, tmp_path, 
     runs = _stored(runs_dir)
     assert main(["runs", "--runs-dir", str(runs_dir)]) == 0
     listing = capsys.readouterr().out.splitlines()
-    assert [line.split()[0] for line in listing] == [r["id"][:12] for r in runs]
+    assert listing[0].split()[0] == "RUN"  # the header
+    assert [line.split()[0] for line in listing[1:]] == [r["id"][:12] for r in runs]
     for run in runs:
         assert main(["show", run["id"], "--runs-dir", str(runs_dir)]) == 0
         shown = capsys.readouterr().out
@@ -69,14 +71,22 @@ def test_stored_runs_are_listed_shown_reported_and_exported(runs_dir, tmp_path, 
         assert main(["report", run["id"], "-o", str(html_path), "--runs-dir", str(runs_dir)]) == 0
         assert capsys.readouterr().out.strip() == str(html_path)
         html = html_path.read_text(encoding="utf-8")
-        assert run["id"] in html and f"{run['state']} (" in html
+        assert run["id"] in html and f"{run['state']} (" in html and "id=signoff" in html
         if not results:
             assert "No results: the run has not finished." in html
         elif run["procedure"] == "iso9283_repeatability":
-            rp_l = results["points"]["P1"]["stats"]["rp_l"]
-            assert f"<td>{rp_l * 1e6:.2f}" in html
+            # stored before figure objects, uncertainty and test conditions: the ISO statistics are shown, the
+            # deviations are read off the run, the conditions come from its parameters and station snapshot
+            cycles = run["parameters"]["cycles"]
+            assert f"— {cycles} cycles</h1>" in html and f"{cycles} cycles measured (ISO 9283 asks for 30)" in html
+            assert "read off the run" in html and "stored before the test conditions were recorded" in html
+            for label in results["order"]:
+                stats = results["points"][label]["stats"]
+                assert f"<span class=v>{stats['rp_l'] * 1e6:.2f}</span>" in html
+                assert f"<span class=v>{stats['rp_a'] * 180 * 3600 / math.pi:.2f}</span>" in html  # arc-seconds
+            assert html.count("class=\"circle\"") == 3 * len(results["order"])  # x–y, x–z, y–z with the RP circle
         else:
-            assert results["record_id"] in html and "error against measured value" in html
+            assert results["record_id"] in html and "datum removed" in html and "error before" in html
 
         assert main(["export", run["id"], "--csv", "--runs-dir", str(runs_dir)]) == 0
         rows = list(csv.DictReader(io.StringIO(capsys.readouterr().out)))
@@ -116,3 +126,34 @@ def test_paused_runs_resume_to_the_end_without_touching_committed_samples(runs_d
             assert all(results["points"][p]["n"] == run["parameters"]["cycles"] for p in results["order"])
         else:
             assert Path(results["record_path"]).is_file() and finished["calibration_record_id"] == results["record_id"]
+
+
+def _rows(db: Path, query: str) -> list[tuple]:
+    with sqlite3.connect(db) as conn:
+        return conn.execute(query).fetchall()
+
+
+@pytest.mark.parametrize("written_by", ["5786d73", "before schema versions"])
+def test_an_older_store_is_migrated_in_place_keeping_every_row(runs_dir, written_by):
+    from procedures._store_schema import LATEST, MIGRATIONS
+
+    db = runs_dir / "runs.sqlite"
+    if written_by != "5786d73":  # the store as the code just before schema versions left it: two more tables
+        with sqlite3.connect(db) as conn:
+            conn.executescript(MIGRATIONS[1].sqlite)
+    found = 1 if written_by == "5786d73" else 2
+    events = _rows(db, "SELECT rowid, run_id, time, kind, message, data FROM events ORDER BY rowid")
+    samples = _rows(db, "SELECT * FROM samples ORDER BY run_id, step_index")
+    runs = _rows(db, "SELECT * FROM runs ORDER BY id")
+    with RunStore(runs_dir) as store:
+        versions = _rows(db, "SELECT version, description FROM schema_version ORDER BY version")
+        assert [v for v, _ in versions] == list(range(found, LATEST + 1))
+        assert "written before schema versions" in versions[0][1]
+        assert _rows(db, "SELECT id, run_id, time, kind, message, data FROM events ORDER BY id") == events
+        assert _rows(db, "SELECT * FROM samples ORDER BY run_id, step_index") == samples
+        assert [row[:len(runs[0])] for row in _rows(db, "SELECT * FROM runs ORDER BY id")] == runs
+        assert _rows(db, "SELECT COUNT(*) FROM runs WHERE robot_serial IS NOT NULL") == [(0,)]  # older runs: NULL
+        run_id = store.list_runs()[0]["id"]
+        assert [e["message"] for e in store.events(run_id)] == [e[4] for e in events if e[1] == run_id]
+    with RunStore(runs_dir):  # opened again: nothing applied twice
+        assert len(_rows(db, "SELECT version FROM schema_version")) == LATEST - found + 1

@@ -86,6 +86,10 @@ def rp_l_with_standard_error(positions: np.ndarray) -> tuple[np.ndarray, np.ndar
     m4 = (centred**4).mean(axis=-1)
     with np.errstate(divide="ignore", invalid="ignore"):
         variance = (std**2 + 9.0 * (m4 - std**4) / (4.0 * std**2) + 3.0 * m3 / std) / n
+    # In small samples a strongly negative m3 can drive the estimate to zero or below (about 4 % of
+    # n = 5 Gaussian sets), which would collapse the interval to a point; the variance of l̄ alone,
+    # S²/n, is then the honest floor. All poses identical still gives 0.
+    variance = np.where(variance > 0.0, variance, std**2 / n)
     return mean + 3.0 * std, np.sqrt(np.clip(np.nan_to_num(variance, nan=0.0), 0.0, None))
 
 

@@ -11,15 +11,35 @@ from typing import Any
 import numpy as np
 from pydantic import ValidationInfo
 
+from instrument import __version__
+from instrument.environment import AirConditions
 from procedures._science import COMPONENTS
 from procedures._store import Sample
+from procedures.kinds._calibration_results import (
+    add_datum_removed_curves,
+    before_after,
+    evaluation_view,
+    off_axis_slopes,
+    reference_vs_truth,
+    residual_uncertainties,
+)
+from procedures.kinds._conditions import local_time, operator_of
+from procedures.kinds._environment import environment_summary
+from procedures.kinds._parameters import MotionParameters
 from procedures.kinds._protocol import Analysis, AnalysisContext
+from procedures.kinds._references import (
+    HENE_WAVELENGTH_M,
+    interferometer_reference,
+    scale_uncertainty,
+    table_reference,
+)
 
 MAX_PLAN_STEPS = 100_000
 """Largest plan a procedure file may ask for (a 30-cycle ISO run is 155 steps, the paper's
 displacement calibration 405); more is a typo such as ``step_mm: 1e-9``, refused before any plan."""
 MIN_POINTS_PER_LINE = 5  # instrument.compensation.calibrate leaves one point out over at least 5 points
 MIN_REPEATS = 2  # ... and estimates its noise floor from repeated observations at a point
+RESULTS_VERSION = 2  # docs/results.md; results stored before it have no version
 
 
 def line_points(start: float, stop: float, step: float) -> int:
@@ -91,8 +111,10 @@ def record_file(record_path: str | None, ctx: AnalysisContext, kind: str) -> Pat
 
 def analyse_calibration(samples: Sequence[Sample], ctx: AnalysisContext, *, kind: str,
                         component_of_axis: Mapping[str, str], reference_instrument: str,
-                        record_path: str | None) -> Analysis:
-    """Fit a calibration record on the run's (measured, reference, group, point) rows and write it.
+                        record_path: str | None, params: MotionParameters, approach: str = "one",
+                        wavelength_compensation: bool = False) -> Analysis:
+    """Fit a calibration record on the run's (measured, reference, group, point, direction) rows, write
+    it, and state the results honestly (docs/results.md, "Calibration run").
 
     Parameters
     ----------
@@ -102,17 +124,31 @@ def analyse_calibration(samples: Sequence[Sample], ctx: AnalysisContext, *, kind
     component_of_axis : the pose component each axis calibrates (``{"x": "a"}`` for angles)
     reference_instrument : named in the record's provenance
     record_path : where to write the record; default ``<run folder>/calibration-<kind>.json``
+    params : the run's parameters (frames per pose, operator)
+    approach : the ``approach`` parameter ("one" or "both")
+    wavelength_compensation : the displacement readings were compensated for the air
     """
     data: dict[str, list[dict[str, Any]]] = {}
+    environment: list[dict[str, Any]] = []
+    factors: list[float] = []
+    lines: dict[str, list[tuple[Any, list[float]]]] = {}
     for sample in samples:
         if not sample.ok or sample.phase != "calibration" or sample.meta is None or sample.solved is None:
             continue
+        meta = sample.meta
+        lines.setdefault(meta["axis"], []).append(((meta["group"], meta["repeat"], meta.get("approach")),
+                                                   sample.solved["pose"]))
         component = component_of_axis[sample.meta["axis"]]
         index = COMPONENTS.index(component)
         reference = sample.reference or {}
         entry = {"group": sample.meta["group"], "repeat": sample.meta["repeat"], "point": sample.meta["point"],
                  "nominal": sample.meta["nominal"], "measured": sample.solved["pose"][index],
-                 "reference": reference["value"], "datum_set_at": reference.get("datum_set_at")}
+                 "reference": reference["value"], "datum_set_at": reference.get("datum_set_at"),
+                 "direction": sample.meta.get("approach")}
+        if reference.get("environment"):
+            environment.append(reference["environment"])
+        if reference.get("wavelength_compensation"):
+            factors.append(float(reference["wavelength_compensation"]["factor"]))
         if ctx.truth is not None and sample.t_measured is not None:
             state = ctx.truth.at(sample.t_measured)
             if state is not None:
@@ -123,15 +159,63 @@ def analyse_calibration(samples: Sequence[Sample], ctx: AnalysisContext, *, kind
         raise ValueError("no successful calibration samples to fit")
     for rows in data.values():
         join_datums(rows)
+    air = environment_summary(environment)
+    mean_air = None if air is None else air["mean"]
+    if kind == "displacement":
+        air_conditions = None
+        if mean_air and all(mean_air.get(q) is not None for q in ("air_temperature_k", "pressure_pa",
+                                                                    "relative_humidity")):
+            air_conditions = AirConditions(mean_air["air_temperature_k"], mean_air["pressure_pa"],
+                                           mean_air["relative_humidity"])
+        scale = scale_uncertainty(air_conditions, HENE_WAVELENGTH_M, compensated=bool(factors))
+        reference_entry = interferometer_reference(scale, compensated=bool(factors), air=mean_air,
+                                                   frames_per_pose=params.frames_per_pose)
+        reference_entry["off_axis"] = off_axis_slopes(lines)
+        noise = dict.fromkeys(data, float(reference_entry["reading_noise_m"]))
+        scales = dict.fromkeys(data, scale)
+    else:
+        reference_entry = table_reference(params.frames_per_pose)
+        noise = dict.fromkeys(data, float(reference_entry["encoder_standard_uncertainty_rad"]))
+        scales = dict.fromkeys(data, 0.0)
+    reference_entry["instrument"] = reference_instrument
+    reference_entry["components"] = sorted(data)
+    temperature = None if mean_air is None or mean_air.get("air_temperature_k") is None \
+        else mean_air["air_temperature_k"] - 273.15
+    first = min((s.t_measured for s in samples if s.t_measured is not None), default=None)
     fit = ctx.science.fit_calibration(kind, data, {
-        "run_id": ctx.run_id, "date": time.strftime("%Y-%m-%dT%H:%M:%S"),
-        "references": [{"instrument": reference_instrument, "components": sorted(data)}]})
+        "run_id": ctx.run_id, "date": local_time(first) or time.strftime("%Y-%m-%dT%H:%M:%S"),
+        "references": [reference_entry], "temperature_c": temperature})
     path = record_file(record_path, ctx, kind)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(fit.record_json, encoding="utf-8")
+    curves = fit.curves
+    add_datum_removed_curves(curves)
+    notes: list[str] = []
+    deviations = []
+    if kind == "displacement" and not factors:
+        deviations.append({"code": "environment_not_recorded", "severity": "warning",
+                           "message": "the interferometer's readings were not compensated for the air (no "
+                                      "environmental reading): its scale is uncertain by "
+                                      f"{scale * 1e6:.2g} ppm", "details": {"scale_standard_uncertainty": scale}})
+    if approach == "one":
+        deviations.append({"code": "one_directional", "severity": "warning",
+                           "message": "every point was approached from below only: the record cannot correct the "
+                                      "hysteresis of a run that approaches from above", "details": {}})
     results = {
-        "kind": f"{kind}_calibration", "record_path": str(path.resolve()), "record_id": fit.record_id,
-        "data": data, "curves": fit.curves, "summary": fit.summary,
+        "kind": f"{kind}_calibration", "results_version": RESULTS_VERSION, "record_path": str(path.resolve()),
+        "record_id": fit.record_id, "approach": approach, "data": data, "curves": curves, "summary": fit.summary,
+        "evaluation": evaluation_view(fit.summary), "before_after": before_after(curves),
+        "residual_uncertainty": residual_uncertainties(curves, data, reference_noise=noise, reference_scale=scales,
+                                                       notes=notes),
+        "reference_vs_truth": reference_vs_truth(data), "off_axis": reference_entry.get("off_axis"),
+        "test_conditions": {
+            "date": local_time(first), "operator": operator_of(params.operator), "software_version": __version__,
+            "reference": reference_entry, "environment": air,
+            "wavelength_compensation": None if not factors else {
+                "applied": True, "equation": "modified Edlén (instrument.environment)", "factor_min": min(factors),
+                "factor_max": max(factors), "factor_mean": float(np.mean(factors))},
+        },
+        "deviations": deviations, "notes": notes,
         "failed_samples": sum(1 for s in samples if not s.ok),
     }
     return Analysis(results=results, calibration_record_id=fit.record_id)

@@ -40,6 +40,8 @@ class MotionParameters(_Strict):
     max_failed_samples: int = Field(3, ge=0, le=100000, description="failed poses tolerated in one session of "
                                     "the run (a resume measures the failed ones again) before it fails")
     save_frames: Literal["never", "failed", "always"] = Field("failed", description="which raw frames to keep")
+    operator: str | None = Field(None, max_length=200, description="who runs the test, recorded in its conditions "
+                                 "(default: $INSTRUMENT_OPERATOR, else the login name)")
 
 
 class ProcedureBase(_Strict):

@@ -48,6 +48,9 @@ class Step:
         Point name (``"P1"``) or calibration point.
     meta : dict
         Axis, group, repeat, cycle, nominal value (SI) ..., stored with the sample.
+    via : tuple of (6,) lists
+        Robot poses the move may pass through first (an approach's pre-position); the dry run
+        checks them against the envelope too.
     """
 
     index: int
@@ -58,6 +61,7 @@ class Step:
     table_angle: float | None = None
     label: str = ""
     meta: dict[str, Any] = field(default_factory=dict)
+    via: tuple[list[float], ...] = ()
 
     def robot_target(self) -> list[float]:
         """The commanded TCP pose of a step that moves the robot (a plan without one is a bug)."""
@@ -127,6 +131,11 @@ class StepContext(Protocol):
         ...
 
     @property
+    def station(self) -> StationFile:
+        """The station file the run uses (frames, envelope, which devices it has)."""
+        ...
+
+    @property
     def robot(self) -> Robot: ...
 
     @property
@@ -147,8 +156,9 @@ class StepContext(Protocol):
         """Wait the procedure's settle time (an abort cuts it short)."""
         ...
 
-    def measure_pose(self, step: Step) -> PoseReading:
-        """Grab ``frames_per_pose`` frame triples and solve the pose, retrying failed frames."""
+    def measure_pose(self, step: Step, *, direction: Mapping[str, int | None] | None = None) -> PoseReading:
+        """Grab ``frames_per_pose`` frame triples and solve the pose, retrying failed frames; correct it
+        with the records in force, for the approach ``direction`` per component (±1; None: unknown)."""
         ...
 
 

@@ -2,6 +2,10 @@
 the table's encoder is the reference. The operator re-mounts the OPR per axis.
 
 Writes a calibration record with one curve per angle (components a, b, c about x, y, z).
+
+``approach: one`` reaches every angle turning positive (a pre-position ``overshoot_deg`` below it
+where the table does not already come from below); ``both`` makes each repeat an ascending pass (+1)
+and a descending one (−1). Samples record their direction.
 """
 
 from __future__ import annotations
@@ -13,12 +17,12 @@ import numpy as np
 from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from procedures._models import StationFile
-from procedures._report_sections import calibration_results_html
+from procedures._report_sections import calibration_results_html, calibration_summary_lines
 from procedures._science import ANGLE_COMPONENT
 from procedures._store import Sample
+from procedures.kinds._approach import Approach, approach_table, directions_of
 from procedures.kinds._calibration import (
     analyse_calibration,
-    calibration_summary_lines,
     check_calibration_size,
     check_record_path,
     inclusive_range,
@@ -45,6 +49,10 @@ class AngleParameters(MotionParameters):
     )
     table_speed_deg_s: float = Field(5.0, gt=0, le=360, description="rotary table speed, °/s")
     home_table: bool = Field(True, description="home the table before the first axis if it is not homed")
+    approach: Approach = Field("one", description="one: every angle approached turning positive; both: each "
+                               "repeat an ascending and a descending pass (approach from below and from above)")
+    overshoot_deg: float = Field(0.05, gt=0, le=5, description="how far beyond an angle the table turns first to "
+                                 "approach it from the wanted side, degrees")
     record_path: str | None = Field(
         None, description="where to write the calibration record: a path relative to the runs folder, without "
         "'..' (default: calibration-angle.json in the run's folder)"
@@ -62,7 +70,8 @@ class AngleParameters(MotionParameters):
         if len(set(self.axes)) != len(self.axes):
             raise ValueError(f"axes repeat an axis: {self.axes}")
         check_calibration_size(line_points(self.start_deg, self.stop_deg, self.step_deg),
-                               len(self.axes) * self.groups, self.repeats, "step_deg", info)
+                               len(self.axes) * self.groups * len(directions_of(self.approach)), self.repeats,
+                               "step_deg", info)
         return self
 
 
@@ -85,13 +94,18 @@ class AngleCalibrationKind:
             setup = OprOnTable(axis, home_table=params.home_table, home_timeout_s=params.move_timeout_s)
             for g, offset_deg in enumerate(params.group_start_offsets_deg):
                 for r in range(params.repeats):
-                    for i, value in enumerate(values):
-                        angle = float(value + np.radians(offset_deg))
-                        steps.append(Step(
-                            index=len(steps), key=f"angle/{axis}/g{g}/r{r}/p{i:02d}", phase="calibration",
-                            setup=setup, table_angle=angle, label=f"{axis}={np.degrees(angle):.4g}°",
-                            meta={"axis": axis, "group": g, "repeat": r, "point": i, "nominal": angle},
-                        ))
+                    for direction in directions_of(params.approach):
+                        order = range(len(values)) if direction > 0 else range(len(values) - 1, -1, -1)
+                        for i in order:
+                            angle = float(values[i] + np.radians(offset_deg))
+                            steps.append(Step(
+                                index=len(steps), key=f"angle/{axis}/g{g}/r{r}/p{i:02d}" + ("" if direction > 0
+                                                                                           else "/down"),
+                                phase="calibration", setup=setup, table_angle=angle,
+                                label=f"{axis}={np.degrees(angle):.4g}°" + ("" if direction > 0 else " ↓"),
+                                meta={"axis": axis, "group": g, "repeat": r, "point": i, "nominal": angle,
+                                      "approach": direction},
+                            ))
         return steps
 
     def devices(self, params: AngleParameters) -> tuple[DeviceRole, ...]:
@@ -101,16 +115,18 @@ class AngleCalibrationKind:
         return False
 
     def move(self, step: Step, params: AngleParameters, ctx: StepContext) -> None:
-        ctx.turn_table(step.table_target(), speed=float(np.radians(params.table_speed_deg_s)))
+        approach_table(ctx, step, float(np.radians(params.table_speed_deg_s)), float(np.radians(params.overshoot_deg)))
 
     def measure(self, step: Step, params: AngleParameters, ctx: StepContext) -> Reading:
         ctx.settle()
         table_rad = float(ctx.table.position())
-        return Reading(pose=ctx.measure_pose(step), reference={"table_rad": table_rad, "value": table_rad})
+        return Reading(pose=ctx.measure_pose(step), reference={"table_rad": table_rad, "value": table_rad,
+                                                               "approach": step.meta.get("approach")})
 
     def analyse(self, samples: Sequence[Sample], params: AngleParameters, ctx: AnalysisContext) -> Analysis:
         return analyse_calibration(samples, ctx, kind="angle", component_of_axis=ANGLE_COMPONENT,
-                                   reference_instrument="rotary table encoder", record_path=params.record_path)
+                                   reference_instrument="rotary table encoder", record_path=params.record_path,
+                                   params=params, approach=params.approach)
 
     def report_html(self, results: Mapping[str, Any]) -> str:
         return calibration_results_html(results)

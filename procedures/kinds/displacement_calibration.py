@@ -27,22 +27,25 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import Field, ValidationInfo, field_validator, model_validator
 
-from drivers import DeviceConnectionError
+from drivers import DeviceConnectionError, DeviceFault
 from drivers.interferometer import BeamInterrupted, FeedGap
+from instrument.environment import AirConditions, AirConditionsError
 from procedures._geometry import translated_in_frame
 from procedures._models import StationFile, Vec3
-from procedures._report_sections import calibration_results_html
+from procedures._report_sections import calibration_results_html, calibration_summary_lines
 from procedures._store import Sample
+from procedures.kinds._approach import Approach, approach_on_line, directions_of, note_line_position
 from procedures.kinds._calibration import (
     analyse_calibration,
-    calibration_summary_lines,
     check_calibration_size,
     check_record_path,
     inclusive_range,
     line_points,
 )
+from procedures.kinds._environment import environment_record
 from procedures.kinds._parameters import AxisName, MotionParameters, ProcedureBase, all_axes, retry_wait
 from procedures.kinds._protocol import Analysis, AnalysisContext, DeviceRole, Reading, Step, StepContext
+from procedures.kinds._references import compensate
 from procedures.kinds._setups import InterferometerAligned
 
 AXIS_INDEX = {"x": 0, "y": 1, "z": 2}
@@ -74,6 +77,13 @@ class DisplacementParameters(MotionParameters):
         description="per group, offset (mm, in M) of the whole line from M's origin",
     )
     interferometer_average_s: float = Field(0.5, gt=0, le=60, description="averaging window, s")
+    wavelength_compensation: bool = Field(
+        True, description="compensate each reading for the air read from the head's environmental unit (modified "
+        "Edlén); false: the head's nominal air is taken as it is (a larger scale uncertainty, recorded)")
+    approach: Approach = Field("one", description="one: every point approached from below; both: each repeat "
+                               "an ascending and a descending pass (approach from below and from above)")
+    overshoot_mm: float = Field(1.0, gt=0, le=20, description="how far beyond a point the robot goes first to "
+                                "approach it from the wanted side, mm")
     record_path: str | None = Field(
         None, description="where to write the calibration record: a path relative to the runs folder, without "
         "'..' (default: calibration-displacement.json in the run's folder)"
@@ -90,7 +100,8 @@ class DisplacementParameters(MotionParameters):
                              f"{len(self.group_start_offsets_mm)} entries: expected one offset per group")
         if len(set(self.axes)) != len(self.axes):
             raise ValueError(f"axes repeat an axis: {self.axes}")
-        check_calibration_size(line_points(self.start_mm, self.stop_mm, self.step_mm), len(self.axes) * self.groups,
+        check_calibration_size(line_points(self.start_mm, self.stop_mm, self.step_mm),
+                               len(self.axes) * self.groups * len(directions_of(self.approach)),
                                self.repeats, "step_mm", info)
         return self
 
@@ -116,18 +127,25 @@ class DisplacementCalibrationKind:
             for g, offset_mm in enumerate(params.group_start_offsets_mm):
                 offset = np.asarray(offset_mm) * 1e-3
                 for r in range(params.repeats):
-                    for i, value in enumerate(values):
-                        position = offset.copy()
-                        position[k] += value
-                        steps.append(Step(
-                            index=len(steps), key=f"disp/{axis}/g{g}/r{r}/p{i:02d}", phase="calibration",
-                            setup=setup,
-                            tcp_pose=translated_in_frame(station.frames.reference_tcp_pose, position).tolist(),
-                            label=f"{axis}={value * 1e3:g} mm",
-                            meta={"axis": axis, "group": g, "repeat": r, "point": i, "nominal": float(position[k]),
-                                  "group_start": float(offset[k] + values[0]),
-                                  "zero_interferometer": r == 0 and i == 0},
-                        ))
+                    for direction in directions_of(params.approach):
+                        order = range(len(values)) if direction > 0 else range(len(values) - 1, -1, -1)
+                        for i in order:
+                            position = offset.copy()
+                            position[k] += values[i]
+                            before = position.copy()
+                            before[k] -= direction * params.overshoot_mm * 1e-3
+                            steps.append(Step(
+                                index=len(steps), key=f"disp/{axis}/g{g}/r{r}/p{i:02d}" + ("" if direction > 0
+                                                                                          else "/down"),
+                                phase="calibration", setup=setup,
+                                tcp_pose=translated_in_frame(station.frames.reference_tcp_pose, position).tolist(),
+                                label=f"{axis}={values[i] * 1e3:g} mm" + ("" if direction > 0 else " ↓"),
+                                meta={"axis": axis, "group": g, "repeat": r, "point": i,
+                                      "nominal": float(position[k]), "group_start": float(offset[k] + values[0]),
+                                      "zero_interferometer": r == 0 and i == 0 and direction > 0,
+                                      "approach": direction},
+                                via=(translated_in_frame(station.frames.reference_tcp_pose, before).tolist(),),
+                            ))
         return steps
 
     def devices(self, params: DisplacementParameters) -> tuple[DeviceRole, ...]:
@@ -137,7 +155,7 @@ class DisplacementCalibrationKind:
         return False
 
     def move(self, step: Step, params: DisplacementParameters, ctx: StepContext) -> None:
-        ctx.move_robot(step.robot_target())
+        approach_on_line(ctx, step, AXIS_INDEX[step.meta["axis"]], params.overshoot_mm * 1e-3)
 
     def measure(self, step: Step, params: DisplacementParameters, ctx: StepContext) -> Reading:
         ctx.settle()
@@ -146,6 +164,9 @@ class DisplacementCalibrationKind:
         for attempt in range(READ_ATTEMPTS):
             try:
                 reading = float(ctx.interferometer.average(duration, timeout=duration + 10.0))
+                # The air right after the window (the unit reads once a second; the air drifts by tenths of
+                # a kelvin an hour): a stale reading is a FeedGap, read again with the displacement.
+                environment = ctx.interferometer.environment() if params.wavelength_compensation else None
                 break
             except BeamInterrupted as exc:  # DatumLost too: the count is gone, so is the datum
                 if attempt == READ_ATTEMPTS - 1:
@@ -160,8 +181,22 @@ class DisplacementCalibrationKind:
                     raise
                 ctx.log("feed_gap", f"{step.key}: {exc}; reading again")
                 ctx.wait(retry_wait(params, attempt))
+        displacement, wavelength = reading, None
+        if environment is not None:
+            optics = ctx.interferometer.optics
+            air = AirConditions(environment.air_temperature_k, environment.pressure_pa, environment.relative_humidity,
+                                optics.air_co2)
+            try:
+                compensation = compensate(reading, air, optics)
+            except AirConditionsError as exc:
+                raise DeviceFault(ctx.interferometer.name, "environment",
+                                  f"the air read cannot be compensated for: {exc}") from None
+            displacement, wavelength = compensation.apply(reading), compensation.as_record()
         # The reference is where the group's line starts (nominal) plus the displacement since its zero.
-        reference = {"interferometer_m": reading, "value": step.meta["group_start"] + reading,
+        reference = {"interferometer_raw_m": reading, "interferometer_m": displacement,
+                     "value": step.meta["group_start"] + displacement, "wavelength_compensation": wavelength,
+                     "environment": None if environment is None else environment_record(environment),
+                     "approach": step.meta.get("approach"),
                      "robot_tcp_pose": [float(v) for v in ctx.robot.tcp_pose()],
                      "datum_set_at": datum.set_at, "datum_reestablished": datum.reestablished}
         return Reading(pose=ctx.measure_pose(step), reference=reference)
@@ -189,7 +224,8 @@ class DisplacementCalibrationKind:
         ctx.session.setdefault("datums", {})[(step.meta["axis"], step.meta["group"])] = datum
         ctx.log("datum", f"{step.meta['axis']} group {step.meta['group']}: datum re-established at the group's "
                          f"first point before {step.key}: {why}")
-        ctx.move_robot(step.robot_target())
+        note_line_position(ctx, step, step.meta["group_start"])
+        approach_on_line(ctx, step, AXIS_INDEX[step.meta["axis"]], params.overshoot_mm * 1e-3)
         ctx.settle()
         return datum
 
@@ -208,7 +244,9 @@ class DisplacementCalibrationKind:
 
     def analyse(self, samples: Sequence[Sample], params: DisplacementParameters, ctx: AnalysisContext) -> Analysis:
         return analyse_calibration(samples, ctx, kind="displacement", component_of_axis={a: a for a in "xyz"},
-                                   reference_instrument="laser interferometer", record_path=params.record_path)
+                                   reference_instrument="laser interferometer", record_path=params.record_path,
+                                   params=params, approach=params.approach,
+                                   wavelength_compensation=params.wavelength_compensation)
 
     def report_html(self, results: Mapping[str, Any]) -> str:
         return calibration_results_html(results)

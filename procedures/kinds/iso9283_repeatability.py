@@ -8,6 +8,7 @@ figures from the ground-truth log.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Mapping, Sequence
 from typing import Any, Literal
 
@@ -15,11 +16,14 @@ import numpy as np
 from pydantic import Field
 
 from instrument.iso9283 import iso_cube_points
-from procedures._geometry import euler_to_matrix, matrix_to_euler, tcp_in_m, translated_in_frame, ur_to_matrix
+from procedures._geometry import translated_in_frame
 from procedures._models import StationFile, Vec3
 from procedures._report_sections import iso_results_html
-from procedures._science import COMPONENTS
 from procedures._store import Sample
+from procedures.kinds._approach import pose_directions, robot_pose_in_m
+from procedures.kinds._conditions import operator_of, robot_identity, set_payload, warm_up
+from procedures.kinds._environment import environment_record, read_environment
+from procedures.kinds._iso_analysis import analyse_iso
 from procedures.kinds._parameters import MotionParameters, ProcedureBase
 from procedures.kinds._protocol import Analysis, AnalysisContext, DeviceRole, Reading, Step, StepContext
 from procedures.kinds._setups import OprOnRobot
@@ -29,12 +33,35 @@ def _paper_cube_center() -> list[float]:
     return [0.035, 0.035, 0.035]
 
 
+def _no_offset() -> list[float]:
+    return [0.0, 0.0, 0.0]
+
+
 class IsoParameters(MotionParameters):
     cube_center_m: Vec3 = Field(default_factory=_paper_cube_center, description="cube centre in M, metres")
     cube_edge_m: float = Field(0.07, gt=0, le=2.0, description="cube edge, metres")
     cycles: int = Field(30, ge=2, le=10000, description="ISO 9283 cycles (the standard asks for 30)")
     transform_step: bool = Field(True, description="measure the cube once first and fit the robot↔M transform")
     apply_compensation: bool = Field(True, description="correct poses with the calibration record in force")
+    payload_mass_kg: float | None = Field(
+        None, ge=0, le=2000, description="payload mass, kg: set on the robot before the cycles and recorded (ISO 9283 "
+        "tests at the rated payload); null: not set, recorded as not stated")
+    payload_cog_m: Vec3 = Field(default_factory=_no_offset, description="payload centre of gravity in the tool "
+                                "flange frame, metres")
+    warm_up: Literal["declared", "run"] = Field(
+        "declared", description="declared: the robot warmed up for warm_up_s before the run (recorded); run: the "
+        "procedure cycles the robot over the cube's points for warm_up_s before the first measured pose")
+    warm_up_s: float = Field(0.0, ge=0, le=86400, description="warm-up time, s")
+    record_environment: bool = Field(True, description="read the interferometer's environmental unit at every "
+                                     "pose when the station has an interferometer (the test's air and drift)")
+    uncertainty_draws: int = Field(1000, ge=0, le=100000, description="Monte Carlo draws of the measurement "
+                                   "uncertainty (0: not evaluated)")
+    drift_cycles: int | None = Field(None, ge=2, le=5000, description="cycles at the start and at the end "
+                                     "compared for the drift figures (default: a third of the cycles)")
+    frame_squareness_urad: float | None = Field(
+        None, ge=0, le=100000, description="standard uncertainty of the instrument's position frame against its "
+        "angle frame (squareness and rotation), µrad: neither calibration measures it; stated here it enters the "
+        "uncertainty of AP and AD, null leaves it out (and the results say so)")
 
 
 class Iso9283Repeatability(ProcedureBase):
@@ -42,26 +69,38 @@ class Iso9283Repeatability(ProcedureBase):
     parameters: IsoParameters = Field(default_factory=IsoParameters)
 
 
+def cube_path(params: IsoParameters, station: StationFile) -> list[tuple[str, list[float], list[float]]]:
+    """(label, position in M, commanded TCP pose in the base frame) of P1…P5 in the cycle's order."""
+    cube = iso_cube_points(np.asarray(params.cube_center_m, dtype=float), float(params.cube_edge_m))
+    reference = station.frames.reference_tcp_pose
+    return [(label, [float(v) for v in point], translated_in_frame(reference, point).tolist())
+            for label, point in zip(cube.order, cube.positions_in_order())]
+
+
 class Iso9283RepeatabilityKind:
-    """The transform pass (phase ``transform``), then the cycles (phase ``iso``)."""
+    """The transform pass (phase ``transform``), then the cycles (phase ``iso``).
+
+    The first move of every session records the test conditions (robot identity, payload set on it,
+    warm-up, operator); every pose records the direction it was approached from and, when the
+    station has an interferometer, the air.
+    """
 
     name = "iso9283_repeatability"
     parameters = IsoParameters
     file_model = Iso9283Repeatability
 
     def plan(self, params: IsoParameters, station: StationFile) -> list[Step]:
-        cube = iso_cube_points(np.asarray(params.cube_center_m, dtype=float), float(params.cube_edge_m))
-        points = list(zip(cube.order, cube.positions_in_order()))
-        reference = station.frames.reference_tcp_pose
+        points = cube_path(params, station)
         setup = OprOnRobot()
+        environment = params.record_environment and station.devices.interferometer is not None
         passes = ([("transform", 0)] if params.transform_step else []) + [("iso", c) for c in range(params.cycles)]
         steps: list[Step] = []
         for phase, cycle in passes:
-            for label, point in points:
+            for label, point, tcp_pose in points:
                 steps.append(Step(
                     index=len(steps), key=f"{phase}/c{cycle:03d}/{label}", phase=phase, setup=setup,
-                    tcp_pose=translated_in_frame(reference, point).tolist(), label=label,
-                    meta={"cycle": cycle, "point": label, "position_in_m": [float(v) for v in point]},
+                    tcp_pose=tcp_pose, label=label,
+                    meta={"cycle": cycle, "point": label, "position_in_m": point, "environment": environment},
                 ))
         return steps
 
@@ -72,83 +111,49 @@ class Iso9283RepeatabilityKind:
         return params.apply_compensation
 
     def move(self, step: Step, params: IsoParameters, ctx: StepContext) -> None:
-        ctx.move_robot(step.robot_target())
+        if "conditions" not in ctx.session:
+            self._start_session(step, params, ctx)
+        reference = ctx.station.frames.reference_tcp_pose
+        target = step.robot_target()
+        previous = ctx.session.get("last_tcp")
+        if previous is None:
+            previous = [float(v) for v in ctx.robot.tcp_pose()]
+        ctx.session["approach"] = pose_directions(robot_pose_in_m(reference, previous),
+                                                  robot_pose_in_m(reference, target))
+        ctx.move_robot(target)
+        ctx.session["last_tcp"] = list(target)
+
+    def _start_session(self, step: Step, params: IsoParameters, ctx: StepContext) -> None:
+        """Identity, payload, warm-up, operator and the air at the start of this session."""
+        started = time.time()
+        conditions: dict[str, Any] = {"started": started, "robot": robot_identity(ctx),
+                                      "payload": set_payload(ctx, params.payload_mass_kg, params.payload_cog_m)}
+        path = [tcp for _, _, tcp in cube_path(params, ctx.station)]
+        conditions["warm_up"] = warm_up(ctx, params.warm_up, params.warm_up_s, path)
+        conditions["operator"] = operator_of(params.operator)
+        ctx.session["conditions"] = conditions
+        ctx.session["conditions_pending"] = True
 
     def measure(self, step: Step, params: IsoParameters, ctx: StepContext) -> Reading:
         ctx.settle()
-        reference = {"robot_tcp_pose": [float(v) for v in ctx.robot.tcp_pose()]}
-        return Reading(pose=ctx.measure_pose(step), reference=reference)
+        approach = ctx.session.get("approach")
+        reference: dict[str, Any] = {"robot_tcp_pose": [float(v) for v in ctx.robot.tcp_pose()], "approach": approach}
+        if step.meta.get("environment"):
+            reference["environment"] = environment_record(read_environment(ctx, params, step.key))
+        if ctx.session.pop("conditions_pending", False):
+            reference["session"] = ctx.session["conditions"]
+        return Reading(pose=ctx.measure_pose(step, direction=approach), reference=reference)
 
     def analyse(self, samples: Sequence[Sample], params: IsoParameters, ctx: AnalysisContext) -> Analysis:
-        return Analysis(results=analyse_iso(samples, ctx))
+        return Analysis(results=analyse_iso(samples, ctx, params))
 
     def report_html(self, results: Mapping[str, Any]) -> str:
         return iso_results_html(results)
 
     def summary_lines(self, results: Mapping[str, Any]) -> list[str]:
-        lines = ["point  n    RP_l (µm)  RP_a (°)   RP_b (°)   RP_c (°)   AP_P (µm)"]
-        for label in results["order"]:
-            entry = results["points"][label]
-            s = entry.get("stats")
-            if s:
-                lines.append(f"{label:<5} {entry['n']:>3}  {s['rp_l'] * 1e6:9.2f}  {np.degrees(s['rp_a']):9.5f}  "
-                             f"{np.degrees(s['rp_b']):9.5f}  {np.degrees(s['rp_c']):9.5f}  {s['ap_p'] * 1e6:9.2f}")
-        return lines
+        from procedures._report_sections import iso_summary_lines  # here, not above: the import block is shared
 
-
-def _measured(sample: Sample) -> np.ndarray:
-    best = sample.corrected or sample.solved or {}
-    return np.asarray(best["pose"], dtype=float)
-
-
-def _commanded_tcp(sample: Sample) -> list[float]:
-    return (sample.commanded or {})["tcp_pose"]
-
-
-def analyse_iso(samples: Sequence[Sample], ctx: AnalysisContext) -> dict[str, Any]:
-    """RP and AP of the tool point per ISO point, after the robot↔M transform fitted on the transform pass."""
-    reference = ctx.station.frames.reference_tcp_pose
-    opr_to_tool = ur_to_matrix(ctx.station.frames.tool_in_opr)
-
-    transform_samples = [s for s in samples if s.phase == "transform" and s.ok]
-    fitted = np.eye(4)
-    transform: dict[str, Any] = {"fitted": False}
-    if len(transform_samples) >= 3:
-        source = np.array([tcp_in_m(reference, _commanded_tcp(s))[:3, 3] for s in transform_samples])
-        target = np.array([_measured(s)[:3] for s in transform_samples])
-        rotation, translation, rms = ctx.science.fit_rigid_transform(source, target)
-        fitted[:3, :3], fitted[:3, 3] = rotation, translation
-        transform = {"fitted": True, "rotation": rotation.tolist(), "translation": translation.tolist(),
-                     "residual_rms": rms, "points": len(transform_samples)}
-
-    order: list[str] = []
-    for sample in samples:
-        if sample.phase == "iso" and sample.label not in order and sample.label is not None:
-            order.append(sample.label)
-    points: dict[str, Any] = {}
-    for label in order:
-        mine = [s for s in samples if s.phase == "iso" and s.label == label and s.ok]
-        if len(mine) < 2:
-            points[label] = {"n": len(mine), "error": "fewer than 2 measured poses"}
-            continue
-        poses = np.array([matrix_to_euler(euler_to_matrix(_measured(s)) @ opr_to_tool) for s in mine])
-        commanded = matrix_to_euler(fitted @ tcp_in_m(reference, _commanded_tcp(mine[0])) @ opr_to_tool)
-        entry = {"n": len(mine), "stats": ctx.science.iso_statistics(poses, commanded),
-                 "poses": poses.tolist(), "commanded": commanded.tolist()}
-        if ctx.truth is not None:
-            states = [ctx.truth.at(s.t_measured) for s in mine if s.t_measured is not None]
-            if states and all(state is not None for state in states):
-                true = np.array([list(st["tool_in_m"]["t"]) + list(st["tool_in_m"]["euler"])
-                                 for st in states if st is not None])
-                entry["true_stats"] = ctx.science.iso_statistics(true, commanded)
-                entry["true_poses"] = true.tolist()
-        points[label] = entry
-    return {
-        "kind": "iso9283", "order": order, "points": points, "transform": transform,
-        "components": list(COMPONENTS),
-        "compensation": [c.record_id for c in ctx.compensators],
-        "failed_samples": sum(1 for s in samples if not s.ok),
-    }
+        return iso_summary_lines(results)
 
 
 KIND = Iso9283RepeatabilityKind()

@@ -1,15 +1,16 @@
 """Read access to the run store for the web view and the OPC UA server.
 
-The engine writes the store (SQLite, WAL) from another process; a reader sees each committed sample
-and event as it lands. ``StoreReader.version()`` is SQLite's ``PRAGMA data_version`` on a connection
-of its own: it changes exactly when another connection commits, so a server polls it a few times a
-second for next to nothing and reads the runs again only when something changed. Everything handed
+The engine writes the store (SQLite in WAL mode, or a shared PostgreSQL) from another process; a reader
+sees each committed sample and event as it lands. ``StoreReader.version()`` is the store's change
+counter read on a connection of its own (SQLite's ``PRAGMA data_version``; PostgreSQL's
+``store_changes`` row, bumped in every writing transaction): it changes when another connection
+commits, so a server polls it a few times a second for next to nothing and reads the runs again only
+when something changed. Everything handed
 out here is JSON-able and in SI units (m, rad, s); the pages convert at their edge.
 """
 
 from __future__ import annotations
 
-import sqlite3
 import threading
 from collections import OrderedDict
 from collections.abc import Callable
@@ -28,13 +29,13 @@ ACTIVE_STATES = (RunState.RUNNING, RunState.PAUSED, RunState.QUEUED)
 def robot_of(run: dict[str, Any]) -> dict[str, str]:
     """Whose robot a run measured: ``{"key", "label", "source"}``.
 
-    Runs that record the robot's identity (``robot_serial`` and ``robot_model`` in the run row, which
-    issue 17 item 4 adds) are grouped by serial number; until then runs are grouped by station name,
-    and ``source`` says which of the two it is.
+    Runs that record the robot's identity (``robot_serial`` … read from the controller at run start)
+    are grouped by serial number, whichever station they ran on; older runs (no identity) by station
+    name; ``source`` says which of the two it is.
     """
     serial = run.get("robot_serial")
     if serial:
-        model = run.get("robot_model") or "robot"
+        model = " ".join(part for part in (run.get("robot_manufacturer"), run.get("robot_model")) if part) or "robot"
         return {"key": f"serial:{serial}", "label": f"{model} serial {serial}", "source": "identity"}
     station = run.get("station_name") or "unnamed station"
     return {"key": f"station:{station}", "label": station, "source": "station"}
@@ -91,8 +92,8 @@ class StoreReader:
         self.runs_dir = Path(runs_dir)
         self._store = RunStore(self.runs_dir)
         self._lock = threading.Lock()
-        # A connection of its own for data_version: the counter is per connection, and this one never writes.
-        self._probe = sqlite3.connect(self._store.path, timeout=5.0, isolation_level=None, check_same_thread=False)
+        # A connection of its own for the change counter (SQLite's counts the commits of *other* connections).
+        self._probe = RunStore(self.runs_dir, timeout=5.0)
         self._cache: OrderedDict[tuple[str, str, int], Any] = OrderedDict()
         self._cache_size = cache_size
 
@@ -104,7 +105,7 @@ class StoreReader:
     def version(self) -> int:
         """A number that changes whenever another connection (the engine, a resume) commits."""
         with self._lock:
-            return int(self._probe.execute("PRAGMA data_version").fetchone()[0])
+            return self._probe.version()
 
     def _cached(self, what: str, key: str, compute: Callable[[], T]) -> T:
         """``compute()`` once per store version."""
@@ -169,17 +170,30 @@ class StoreReader:
         return self._cached("snapshot", run_id, compute)
 
     def iso_history(self, robot_key: str) -> list[dict[str, Any]]:
-        """The finished ISO 9283 runs of one robot (``robot_of(run)["key"]``), oldest first: per point
-        n, RP and AP with their confidence intervals (SI)."""
+        """The finished ISO 9283 runs of one robot (``robot_of(run)["key"]``: its serial when the runs
+        carry it), oldest first: per point n, RP and AP with their confidence intervals (SI), and
+        ``uncertainty`` (key → U, or the interval's half-width) and ``changed`` (key → Δ from the
+        robot's previous run, where it exceeds both runs' uncertainties combined; ``instrument history``)."""
+        from procedures._cli_results import ISO_FIGURES, changes, iso_rows
+
         def compute() -> list[dict[str, Any]]:
-            history = []
+            history: list[dict[str, Any]] = []
+            previous: dict[str, dict[str, Any]] = {}
             for summary in reversed(self.runs()):
                 if summary["robot"]["key"] != robot_key or summary["procedure"] != ISO_PROCEDURE:
                     continue
                 if summary["state"] != RunState.FINISHED:
                     continue
                 results = self.run(summary["id"]).get("results") or {}
-                history.append({"run": summary, "points": iso_points(results)})
+                points = iso_points(results)
+                for row in iso_rows(results):
+                    figures = {key: row[key] for key, *_ in ISO_FIGURES}
+                    if row["point"] in points:
+                        points[row["point"]]["uncertainty"] = {key: fig["u"] for key, fig in figures.items()
+                                                               if fig and fig["u"] is not None}
+                        points[row["point"]]["changed"] = changes(previous.get(row["point"]), figures)
+                    previous[row["point"]] = figures
+                history.append({"run": summary, "points": points})
             return history
         return self._cached("history", robot_key, compute)
 

@@ -1,0 +1,177 @@
+"""A run's key results in a few lines: what ``run``/``resume`` print at the end and ``history`` compares.
+
+ISO 9283 runs: per point n, RP_l, RP_a/b/c, AP_P, each with its expanded uncertainty U when the
+results carry one, else with the half-width of its sampling interval (the 95 % confidence interval
+of RP_l; the other figures then have none). Calibrations: the held-out (leave-one-point-out)
+residual of the method the record kept, per component, beside the noise floor. Everything is read
+from the stored results dict; units convert here, at the edge (µm, arc-seconds).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+ARCSEC = math.pi / (180 * 3600)
+ISO_FIGURES = (("rp_l", "RP_l", "µm", 1e6), ("rp_a", "RP_a", "″", 1 / ARCSEC), ("rp_b", "RP_b", "″", 1 / ARCSEC),
+               ("rp_c", "RP_c", "″", 1 / ARCSEC), ("ap_p", "AP_P", "µm", 1e6))
+LINEAR = {"x", "y", "z"}
+LOPO = "leave-one-point-out"  # the held-out scheme a record's evaluation is chosen by
+
+
+def _number(value: Any) -> float | None:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return None
+    return float(value) if math.isfinite(float(value)) else None
+
+
+def figure(entry: dict[str, Any], key: str) -> dict[str, Any] | None:
+    """One figure of one ISO point: ``{"value", "u", "u_source", "ci"}`` in SI, or None if absent.
+
+    Accepted shapes (older results and those with uncertainties alike): ``stats[key]`` a number with
+    ``stats[key + "_ci"]`` an interval, or an object ``{"value", "expanded_uncertainty",
+    "confidence_interval"}``; or such an object under ``entry["figures"][key]`` or
+    ``entry["uncertainty"][key]`` (a number there is taken as U). ``u`` is the expanded uncertainty
+    (``u_source`` ``"U"``), else the half-width of the confidence interval (``"ci"``), else None.
+    """
+    stats = entry.get("stats") or {}
+    candidates = [stats.get(key), (entry.get("figures") or {}).get(key)]
+    value: float | None = None
+    u: float | None = None
+    ci = stats.get(f"{key}_ci")
+    for candidate in candidates:
+        if isinstance(candidate, dict):
+            value = value if value is not None else _number(candidate.get("value"))
+            u = u if u is not None else _number(candidate.get("expanded_uncertainty"))
+            ci = ci if ci is not None else candidate.get("confidence_interval")
+        elif value is None:
+            value = _number(candidate)
+    extra = (entry.get("uncertainty") or {}).get(key)
+    if u is None:
+        u = _number(extra.get("expanded_uncertainty") if isinstance(extra, dict) else extra)
+    if value is None:
+        return None
+    interval = [float(v) for v in ci] if isinstance(ci, (list, tuple)) and len(ci) == 2 and all(
+        _number(v) is not None for v in ci) else None
+    source = "U" if u is not None else None
+    if u is None and interval is not None:
+        u, source = (interval[1] - interval[0]) / 2, "ci"
+    return {"value": value, "u": u, "u_source": source, "ci": interval}
+
+
+def iso_rows(results: dict[str, Any]) -> list[dict[str, Any]]:
+    """Per ISO point (in the cycle's order): ``point``, ``n`` and each figure of ``ISO_FIGURES`` (``figure``)."""
+    rows = []
+    for label in results.get("order") or []:
+        entry = (results.get("points") or {}).get(label) or {}
+        rows.append({"point": label, "n": entry.get("n"), "error": entry.get("error"),
+                     **{key: figure(entry, key) for key, *_ in ISO_FIGURES}})
+    return rows
+
+
+def changes(previous: dict[str, Any] | None, current: dict[str, Any]) -> dict[str, float]:
+    """The figures of one point that moved by more than the combined uncertainty: key → Δ (SI)."""
+    moved: dict[str, float] = {}
+    if previous is None:
+        return moved
+    for key, *_ in ISO_FIGURES:
+        before, now = previous.get(key), current.get(key)
+        if not before or not now or before.get("u") is None or now.get("u") is None:
+            continue
+        delta = now["value"] - before["value"]
+        if abs(delta) > math.hypot(before["u"], now["u"]):
+            moved[key] = delta
+    return moved
+
+
+def shown(fig: dict[str, Any] | None, scale: float, digits: int = 2) -> str:
+    """``38.27 ± 1.20`` (U or the interval's half-width), ``38.27`` without one, ``–`` when absent."""
+    if fig is None:
+        return "–"
+    text = f"{fig['value'] * scale:.{digits}f}"
+    return text + (f" ± {fig['u'] * scale:.{digits}f}" if fig.get("u") is not None else "")
+
+
+def iso_table_lines(results: dict[str, Any]) -> list[str]:
+    """The RP/AP table of an ISO run as aligned text lines (µm and arc-seconds)."""
+    rows = iso_rows(results)
+    header = ["point", "n", *[f"{name} ({unit})" for _, name, unit, _ in ISO_FIGURES]]
+    body = [[row["point"], str(row["n"] if row["n"] is not None else "–"),
+             *[shown(row[key], scale) for key, _, _, scale in ISO_FIGURES]] for row in rows]
+    sources = {row[key]["u_source"] for row in rows for key, *_ in ISO_FIGURES if row[key] and row[key]["u_source"]}
+    lines = _aligned([header, *body])
+    if "U" in sources:
+        lines.append("± : expanded uncertainty U (k = 2)")
+    elif "ci" in sources:
+        lines.append("± : half-width of the 95 % confidence interval (sampling only; no uncertainty in these results)")
+    return lines
+
+
+def held_out_rows(results: dict[str, Any]) -> list[dict[str, Any]]:
+    """Per component of a calibration: the held-out (leave-one-point-out) residual of the method the
+    record kept (the lowest held-out RMS) and the noise floor, SI."""
+    summary = results.get("summary") or {}
+    method = summary.get("method")
+    rows = [r for r in (summary.get("evaluation") or {}).get("rows") or [] if r.get("scheme") == LOPO]
+    found = []
+    for component in sorted({r["component"] for r in rows}):
+        candidates = [r for r in rows if r["component"] == component]
+        kept = method.get(component) if isinstance(method, dict) else method  # else the best held out, as kept
+        chosen = [r for r in candidates if r.get("method") == kept] or sorted(candidates, key=_rms_or_inf)
+        row = chosen[0]
+        found.append({"component": component, "method": row.get("method"), "rms": _number(row.get("rms")),
+                      "max_abs": _number(row.get("max_abs")), "noise_floor": _number(row.get("noise_floor")),
+                      "n": row.get("n_heldout")})
+    return found
+
+
+def _rms_or_inf(row: dict[str, Any]) -> float:
+    rms = _number(row.get("rms"))
+    return math.inf if rms is None else rms
+
+
+def calibration_lines(results: dict[str, Any]) -> list[str]:
+    """Where the record went, and the held-out residual per component (µm or arc-seconds)."""
+    lines = [f"record {results.get('record_path')} ({results.get('record_id')})"]
+    table = [["component", "method", "held-out RMS", "max", "noise floor", "n"]]
+    for row in held_out_rows(results):
+        scale, unit = (1e6, "µm") if row["component"] in LINEAR else (1 / ARCSEC, "″")
+        cells = ["–" if row[key] is None else f"{row[key] * scale:.3f} {unit}" for key in ("rms", "max_abs",
+                                                                                          "noise_floor")]
+        table.append([row["component"], str(row["method"]), *cells, str(row["n"] if row["n"] is not None else "–")])
+    if len(table) > 1:
+        lines += ["held-out (leave-one-point-out) residuals after compensation:", *_aligned(table)]
+    return lines
+
+
+def result_summary(run: dict[str, Any]) -> dict[str, Any] | None:
+    """The key results as JSON (SI): ISO ``points`` (``iso_rows``) or a calibration's ``held_out`` rows."""
+    results = run.get("results") or {}
+    if _is_iso(results):
+        return {"kind": "iso9283", "points": iso_rows(results)}
+    if "record_path" in results:
+        return {"kind": results.get("kind"), "record_path": results.get("record_path"),
+                "record_id": results.get("record_id"), "held_out": held_out_rows(results)}
+    return None
+
+
+def _is_iso(results: dict[str, Any]) -> bool:
+    return results.get("kind") == "iso9283" or ("order" in results and "points" in results)
+
+
+def result_lines(run: dict[str, Any]) -> list[str]:
+    """The key results of a stored run (empty when it has none)."""
+    results = run.get("results") or {}
+    if not results:
+        return []
+    if _is_iso(results):
+        return iso_table_lines(results)
+    if "record_path" in results:
+        return calibration_lines(results)
+    return []
+
+
+def _aligned(rows: list[list[str]]) -> list[str]:
+    widths = [max(len(row[i]) for row in rows) for i in range(len(rows[0]))]
+    return ["  ".join(cell.rjust(width) if i else cell.ljust(width) for i, (cell, width) in
+                      enumerate(zip(row, widths))).rstrip() for row in rows]
