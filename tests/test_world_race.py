@@ -133,3 +133,60 @@ def test_a_settled_state_overtaken_by_a_moving_one_is_delivered_with_its_own_dat
     later = [e for e in subscriber.call("seen") if e["seq"] == passing.seq][0]
     assert not later["settled"]
     np.testing.assert_array_equal(later["flange"], passing.flange_pose)
+
+
+# ------------------------------------------------------------------------------ a real cell under load
+def _burn() -> None:
+    while True:
+        pass
+
+
+@pytest.fixture
+def two_cpu_burners():
+    """Two processes spinning at full speed (the machine saturated, as when the race was seen)."""
+    context = multiprocessing.get_context("spawn")
+    burners = [context.Process(target=_burn, daemon=True) for _ in range(2)]
+    for burner in burners:
+        burner.start()
+    try:
+        yield burners
+    finally:
+        for burner in burners:
+            burner.terminate()
+        for burner in burners:
+            burner.join(10.0)
+
+
+@pytest.mark.slow
+def test_after_every_done_the_frames_show_that_settled_pose_under_load(tmp_path, two_cpu_burners):
+    pytest.importorskip("rtde_control")
+    import yaml
+
+    from drivers.robot import MotionEnvelope, create
+    from sim_devices.cell import SimCell
+
+    moves = 40
+    with SimCell(seed=4, directory=tmp_path / "cell", time_scale=4.0,
+                 config={"cameras": {"render_delay": 0.05}}) as cell:
+        station = yaml.safe_load(cell.station_path.read_text())
+        robot = create({**station["devices"]["robot"], "connect_timeout": 10.0, "move_timeout": 30.0},
+                       name="robot", envelope=MotionEnvelope.from_dict(station["envelope"]))
+        robot.open()
+        try:
+            robot.set_tcp(np.array(station["frames"]["tcp_offset"]))
+            reference = np.array(station["frames"]["reference_tcp_pose"])
+            stale = []
+            for move in range(moves):
+                target = reference.copy()
+                target[:3] += [0.002 * (move % 3), 0.003 * (move % 4), 0.001 * (move % 2)]
+                robot.move_linear(target, speed=0.25, acceleration=1.2)
+                # Done: the frames on disk must be those of the settled pose the robot just reported.
+                pose = cell.truth("pose", last=1)[0]
+                frames = cell.truth("frames", last=1)[0]
+                if frames["seq"] != pose["seq"] or not np.allclose(frames["opr_in_m"]["t"], pose["opr_in_m"]["t"],
+                                                                   rtol=0.0, atol=1e-12):
+                    stale.append((move, pose["seq"], frames["seq"]))
+            assert stale == []
+            assert len(cell.truth("pose")) >= moves
+        finally:
+            robot.close()
