@@ -8,6 +8,9 @@ each of them. It holds, little-endian:
 header     magic ``OPRWORLD``, layout number (``LAYOUT``), number of subscriber slots
 state      a seqlock'd record: counter (odd while being written), seq, seq of the last settled
            state, time, settled, mount code, flange pose (16 doubles, row-major ``T_B_F``), angle
+settled    a seqlock'd copy of the latest *settled* state record (same layout as ``state``), so a
+           process that wakes after a settled state was overtaken by moving ones still gets that
+           settled state's own data (not a pose the robot was merely passing through)
 hint       a seqlock'd record of what a twin expects to settle at next (an *announcement*): id,
            flange pose and/or table angle; lets the camera twin render ahead of time
 slots      one per process that subscribes: pid (0: free) and the last seq it has seen (its ack)
@@ -39,7 +42,7 @@ from pathlib import Path
 import numpy as np
 
 MAGIC = b"OPRWORLD"
-LAYOUT = 1
+LAYOUT = 2  # 2: the last settled record has a slot of its own
 SLOTS = 8
 MOUNTS = ("robot", "table:x", "table:y", "table:z")
 
@@ -50,7 +53,8 @@ _COUNTER = struct.Struct("<Q")
 _SLOT = struct.Struct("<QQ")  # pid, ack seq
 
 _STATE_OFFSET = _HEADER.size  # counter, then the record
-_HINT_OFFSET = _STATE_OFFSET + _COUNTER.size + _STATE.size
+_SETTLED_OFFSET = _STATE_OFFSET + _COUNTER.size + _STATE.size  # counter, then the last settled record
+_HINT_OFFSET = _SETTLED_OFFSET + _COUNTER.size + _STATE.size
 _SLOTS_OFFSET = _HINT_OFFSET + _COUNTER.size + _HINT.size
 SIZE = _SLOTS_OFFSET + SLOTS * _SLOT.size
 
@@ -120,8 +124,9 @@ class WorldChannel:
             stale.unlink(missing_ok=True)
         buffer = bytearray(SIZE)
         _HEADER.pack_into(buffer, 0, MAGIC, LAYOUT, SLOTS)
-        _STATE.pack_into(buffer, _STATE_OFFSET + _COUNTER.size, 0, 0, time_now, settled, MOUNTS.index(mount),
-                         *np.asarray(flange, dtype=float).reshape(16), float(table_angle))
+        for offset in (_STATE_OFFSET, _SETTLED_OFFSET):  # seq 0 counts as settled, whatever its flag
+            _STATE.pack_into(buffer, offset + _COUNTER.size, 0, 0, time_now, settled, MOUNTS.index(mount),
+                             *np.asarray(flange, dtype=float).reshape(16), float(table_angle))
         tmp = directory / ".state.tmp"
         tmp.write_bytes(bytes(buffer))
         os.replace(tmp, directory / "state")
@@ -145,10 +150,12 @@ class WorldChannel:
     # ----------------------------------------------------------------------------- state
     def read(self) -> StateRecord:
         """The current state, consistent (never half written)."""
-        raw = self._read_seqlocked(_STATE_OFFSET, _STATE.size)
-        seq, last_settled, when, settled, mount, *values = _STATE.unpack(raw)
-        return StateRecord(seq, when, bool(settled), MOUNTS[mount], np.array(values[:16]).reshape(4, 4), values[16],
-                           last_settled)
+        return _unpack_state(self._read_seqlocked(_STATE_OFFSET, _STATE.size))
+
+    def read_settled(self) -> StateRecord:
+        """The latest settled state, with its own data (its seq is at least the ``last_settled`` of any
+        state record read before: a writer puts it here before it publishes the state record)."""
+        return _unpack_state(self._read_seqlocked(_SETTLED_OFFSET, _STATE.size))
 
     def seq(self) -> int:
         return int(self.read().seq)
@@ -167,6 +174,10 @@ class WorldChannel:
             )
             payload = _STATE.pack(record.seq, record.last_settled, record.time, record.settled,
                                   MOUNTS.index(record.mount), *record.flange.reshape(16), record.table_angle)
+            if record.settled:
+                # First the settled slot, then the state: whoever reads a state whose last_settled is
+                # this seq finds this record (or a newer settled one) in the slot.
+                self._write_seqlocked(_SETTLED_OFFSET, payload)
             self._write_seqlocked(_STATE_OFFSET, payload)
             return record
 
@@ -300,6 +311,12 @@ class WorldChannel:
 
     def _set_slot(self, index: int, pid: int, ack: int) -> None:
         _SLOT.pack_into(self._map, _SLOTS_OFFSET + index * _SLOT.size, pid, ack)
+
+
+def _unpack_state(raw: bytes) -> StateRecord:
+    seq, last_settled, when, settled, mount, *values = _STATE.unpack(raw)
+    return StateRecord(seq, when, bool(settled), MOUNTS[mount], np.array(values[:16]).reshape(4, 4), values[16],
+                       last_settled)
 
 
 class WakeUps:

@@ -80,11 +80,14 @@ class CameraFileTwin:
     trajectories : path, optional
         The robot's dense truth (``sim_devices.trajectory``): streamed frames show the true pose of
         their exposure. Without it they show the world's current pose.
+    render_delay : float
+        Seconds each settled frame set takes on top of its rendering (a slow renderer on demand: the
+        cell's race tests; ``cameras.render_delay`` in a cell configuration). 0 by default.
     """
 
     def __init__(self, world: World, bench: OpticalBench, directory: str | Path, seed: int | None = None,
                  stream: StreamConfig | Mapping[str, Any] | None = None,
-                 trajectories: str | Path | None = None) -> None:
+                 trajectories: str | Path | None = None, render_delay: float = 0.0) -> None:
         self.world = world
         self.bench = bench
         self.directory = Path(directory)
@@ -109,6 +112,7 @@ class CameraFileTwin:
         self._worker: threading.Thread | None = None
         self._stopping = False
         self._last_state: WorldState | None = None
+        self.render_delay = float(render_delay)
 
     # ------------------------------------------------------------------ lifecycle (cell host API)
     def start(self) -> dict[str, Any]:
@@ -240,6 +244,8 @@ class CameraFileTwin:
             index = self.frames_written + 1
             scale = self._scale()
             announced, ahead = self._take_ahead(index, state.opr_in_m, scale)
+            if self.render_delay > 0:
+                time.sleep(self.render_delay)  # a slow renderer: the settled pose's ack comes this much later
             files = {}
             for name in AXIS_NAMES:
                 if ahead is not None:

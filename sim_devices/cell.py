@@ -109,10 +109,19 @@ class CellConfig:
 
         WorldConfig.from_dict(self.world)
         OpticsConfig.from_dict(self.optics)
-        StreamConfig.from_dict(self.cameras)
+        StreamConfig.from_dict(_stream_section(self.cameras))
         URTwinConfig.from_dict(self.robot)
         RotaryTableTwinConfig.from_dict(self.rotary_table)
         InterferometerTwinConfig.from_dict(self.interferometer)
+
+
+def _stream_section(cameras: Mapping[str, Any]) -> dict[str, Any]:
+    """The ``cameras`` section without ``render_delay`` (s the file twin waits before it puts a settled
+    pose's frames in place: a slow renderer on demand, for the race tests), which it checks."""
+    delay = cameras.get("render_delay", 0.0)
+    if not isinstance(delay, (int, float)) or delay < 0:
+        raise ValueError(f"cameras config: render_delay must be a number of seconds ≥ 0, got {delay!r}")
+    return {key: value for key, value in cameras.items() if key != "render_delay"}
 
 
 class CellNotRunning(RuntimeError):
@@ -275,7 +284,8 @@ class CellHost:
             host = self.robot_host or free_loopback_host()
             settings: dict[str, dict[str, Any]] = {
                 "cameras": {"frames": str(self.directory / "frames"), "optics": dict(config.optics),
-                            "stream": dict(config.cameras), "trajectories": str(trajectories)},
+                            "stream": _stream_section(config.cameras), "trajectories": str(trajectories),
+                            "render_delay": float(config.cameras.get("render_delay", 0.0))},
                 "robot": {"host": host, "time_scale": self.time_scale, "seed": self.seed,
                           "trajectory_dir": str(trajectories), **config.robot},
                 "rotary_table": {**config.rotary_table, "time_scale": self.time_scale},

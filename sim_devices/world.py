@@ -27,7 +27,7 @@ import threading
 import time
 import zlib
 from collections.abc import Callable, Mapping
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
@@ -347,8 +347,8 @@ class World:
 
         A change made in this process calls it synchronously, under the world's lock; a change
         made by another process of the cell calls it on this process's watcher thread (when
-        several changes came at once, with the latest; marked settled if a settled one was among
-        them). Either way a settled change is only complete once every callback has returned.
+        several changes came at once: the latest settled one among them, with its own data, then the
+        latest). Either way a settled change is only complete once every callback has returned.
         """
         with self._lock:
             self._subscribers.append(callback)
@@ -435,7 +435,7 @@ class World:
                                    time_now=self.clock())
             state = self._state_of(record)
             self._log(state, source)
-            self._deliver(state, record.last_settled)
+            self._deliver(record)
             channel.wake_others()
         if state.settled:
             late = channel.wait_for_acks(state.seq, self.ack_timeout)
@@ -458,20 +458,31 @@ class World:
                 tool_in_m=pose_record(state.tool_in_m),
             )
 
-    def _deliver(self, state: WorldState, last_settled: int) -> None:
-        """Run this process's subscribers once per new state (shared mode), then acknowledge it."""
+    def _deliver(self, record: StateRecord) -> None:
+        """Run this process's subscribers once per new state (shared mode), then acknowledge it.
+
+        The invariant the robot's "done" rests on: this process acknowledges a settled seq only after
+        its subscribers have been called with THAT settled state's data. A settled state overtaken by
+        newer (moving) ones before this process got to it is delivered first, from the channel's
+        settled slot: the pose the robot was passing through afterwards is not what it settled at.
+        """
         with self._deliver_lock:
-            if state.seq > self._delivered:
-                if not state.settled and last_settled > self._delivered_settled:
-                    # A settled state was overtaken before we woke: what it set is still true now.
-                    state = replace(state, settled=True)
-                self._delivered = state.seq
-                if state.settled:
-                    self._delivered_settled = state.seq
-                for callback in list(self._subscribers):
-                    callback(state)
+            if (self._channel is not None and record.last_settled > self._delivered_settled
+                    and record.last_settled != record.seq):
+                self._call_subscribers(self._channel.read_settled())  # its seq >= record.last_settled
+            self._call_subscribers(record)
             if self._slot is not None and self._channel is not None:
                 self._channel.ack(self._slot, self._delivered)
+
+    def _call_subscribers(self, record: StateRecord) -> None:
+        if record.seq <= self._delivered:
+            return  # delivered already (or older than what was)
+        self._delivered = record.seq
+        if record.settled:
+            self._delivered_settled = record.seq
+        state = self._state_of(record)
+        for callback in list(self._subscribers):
+            callback(state)
 
     def _start_watcher(self) -> None:
         if self._watcher is not None or self._channel is None:
@@ -508,8 +519,7 @@ class World:
                     expected = self._expected_state(hint.flange, hint.table_angle)
                     for callback in list(self._announce_listeners):
                         callback(expected)
-                record = channel.read()
-                self._deliver(self._state_of(record), record.last_settled)
+                self._deliver(channel.read())
         finally:
             wake_ups.close()
 

@@ -151,24 +151,45 @@ def test_a_settled_change_returns_only_after_every_process_s_subscribers_saw_it(
         world.close()
 
 
-def test_a_settled_state_overtaken_before_a_subscriber_woke_reaches_it_as_settled(tmp_path):
+def test_a_settled_state_overtaken_before_a_subscriber_woke_reaches_it_with_its_own_data(tmp_path):
     world, world_dir = _shared_world(tmp_path)
     try:
         with TwinProcess("tests._world_hosts:WorldSubscriber",
                          {"world_dir": world_dir, "seed": 3, "delay": 0.3}) as other:
             world.set_flange_pose(_moved(world, [0.001, 0.0, 0.0]), settled=False)  # keeps it busy for 0.3 s
             settled_done = threading.Event()
+            settled_pose = _moved(world, [0.002, 0.0, 0.0])
             publisher = threading.Thread(
-                target=lambda: (world.set_flange_pose(_moved(world, [0.002, 0.0, 0.0])), settled_done.set()))
+                target=lambda: (world.set_flange_pose(settled_pose), settled_done.set()))
             publisher.start()
             _wait_for(lambda: world.state().settled)
+            settled_seq = world.state().seq
             latest = world.set_flange_pose(_moved(world, [0.003, 0.0, 0.0]), settled=False)  # overtakes it
             publisher.join(15.0)
             assert settled_done.is_set()
-            deliveries = other.call("seen")
-            # The subscriber never saw the settled state itself, but the newer one, marked settled:
-            # whatever the settled change set is still true in it.
-            assert [(e["seq"], e["settled"]) for e in deliveries][-1] == (latest.seq, True)
+            _wait_for(lambda: other.call("seen")[-1]["seq"] == latest.seq)
+            deliveries = {e["seq"]: e for e in other.call("seen")}
+            # The settled state, with the pose it settled at (not the newer pose passed through), then
+            # the newer state as what it is: moving.
+            assert deliveries[settled_seq]["settled"]
+            np.testing.assert_array_equal(deliveries[settled_seq]["flange"], settled_pose)
+            assert not deliveries[latest.seq]["settled"]
+    finally:
+        world.close()
+
+
+def test_the_channel_keeps_the_last_settled_record_while_moving_ones_overtake_it(tmp_path):
+    world, _world_dir = _shared_world(tmp_path)
+    try:
+        channel = world.channel
+        settled = world.set_flange_pose(_moved(world, [0.004, 0.0, 0.0]))
+        for step in range(3):
+            world.set_flange_pose(_moved(world, [0.0, 0.0001 * (step + 1), 0.0]), settled=False)
+        current = channel.read()
+        kept = channel.read_settled()
+        assert current.last_settled == settled.seq and not current.settled
+        assert kept.seq == settled.seq and kept.settled
+        np.testing.assert_array_equal(kept.flange, settled.flange_pose)
     finally:
         world.close()
 
