@@ -46,8 +46,9 @@ class CellTwin:
     truth_path : str
         The cell's ground-truth log (every process appends to it).
     settings : mapping
-        The twin's own section; for ``robot`` also ``host``; for ``cameras`` also ``frames``
-        (the directory) and ``optics``; for ``rotary_table`` also ``time_scale``.
+        The twin's own section; for ``robot`` also ``host`` (and ``trajectory_dir``); for ``cameras``
+        ``frames`` (the directory), ``optics``, ``stream`` (the cameras' timing) and ``trajectories``
+        (the robot's dense truth); for ``rotary_table`` also ``time_scale``.
     """
 
     def __init__(self, kind: str, world_dir: str, world: Mapping[str, Any], truth_path: str,
@@ -90,7 +91,8 @@ class CellTwin:
         from sim_devices.optics import OpticalBench
 
         bench = OpticalBench(self.world, self.settings.get("optics"))
-        return CameraFileTwin(self.world, bench, self.settings["frames"])
+        return CameraFileTwin(self.world, bench, self.settings["frames"], stream=self.settings.get("stream"),
+                              trajectories=self.settings.get("trajectories"))
 
     def _robot(self) -> Any:
         from sim_devices.ur import URControllerTwin

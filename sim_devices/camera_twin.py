@@ -15,7 +15,7 @@ from __future__ import annotations
 import os
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -25,6 +25,7 @@ import numpy as np
 
 from drivers import DeviceConnectionError, DeviceTimeout
 from drivers.camera import Frame, GrabFailed, Roi
+from sim_devices.camera_stream import StreamConfig, StreamServer
 from sim_devices.control import dispatch
 from sim_devices.faults import FaultKind, FaultPlan
 from sim_devices.optics import AXIS_NAMES, OpticalBench
@@ -73,14 +74,26 @@ class CameraFileTwin:
     seed : int, optional
         Noise seed (default: the world's seed); the noise of frame set ``n`` (the n-th rendered,
         ``frames_written``) is seeded by ``(seed, camera, n)``.
+    stream : StreamConfig or mapping, optional
+        The cameras' timing for streaming acquisition (``sim_devices.camera_stream``); its requests
+        come through ``<directory>/streams``.
+    trajectories : path, optional
+        The robot's dense truth (``sim_devices.trajectory``): streamed frames show the true pose of
+        their exposure. Without it they show the world's current pose.
     """
 
-    def __init__(self, world: World, bench: OpticalBench, directory: str | Path, seed: int | None = None) -> None:
+    def __init__(self, world: World, bench: OpticalBench, directory: str | Path, seed: int | None = None,
+                 stream: StreamConfig | Mapping[str, Any] | None = None,
+                 trajectories: str | Path | None = None) -> None:
         self.world = world
         self.bench = bench
         self.directory = Path(directory)
         self.directory.mkdir(parents=True, exist_ok=True)
-        self.renderer = Renderer(bench, seed=world.config.seed if seed is None else seed, bit_depth=8)
+        seed = world.config.seed if seed is None else seed
+        self.renderer = Renderer(bench, seed=seed, bit_depth=8)
+        self.streams = StreamServer(world, bench, seed, self.directory / "streams",
+                                    Path(trajectories) if trajectories is not None else None,
+                                    stream if isinstance(stream, StreamConfig) else StreamConfig.from_dict(stream))
         self.paths = {name: self.directory / f"{name}.bmp" for name in AXIS_NAMES}
         self.laser_on = True
         self.exposure_scale = 1.0
@@ -108,9 +121,11 @@ class CameraFileTwin:
             self.world.on_announce(self._on_announce)
             self._subscribed = True
             self._on_state(self.world.state(), force=True)
-        return {"files": {name: str(path) for name, path in self.paths.items()}}
+            self.streams.start()
+        return {"files": {name: str(path) for name, path in self.paths.items()}, "streams": str(self.streams.root)}
 
     def stop(self) -> None:
+        self.streams.stop()
         if self._subscribed:
             self.world.unsubscribe(self._on_state)
             self.world.remove_announce_listener(self._on_announce)
@@ -151,9 +166,11 @@ class CameraFileTwin:
                 "rendered_ahead": self.rendered_ahead}
 
     def control(self, command: str, /, **kwargs: Any) -> Any:
-        """``laser`` (on: bool), ``exposure`` (scale: float), ``render`` (re-render now), ``files``, ``stats``."""
+        """``laser`` (on: bool), ``exposure`` (scale: float), ``render`` (re-render now), ``files``, ``stats``,
+        ``stream_stats`` (streams served, frames rendered, the cameras' clocks)."""
         commands: dict[str, Callable[..., Any]] = {"laser": self.set_laser, "exposure": self.set_exposure,
-                                                   "render": self.render, "files": self.files, "stats": self.stats}
+                                                   "render": self.render, "files": self.files, "stats": self.stats,
+                                                   "stream_stats": self.streams.stats}
         return dispatch(commands, command, kwargs, "camera twin")
 
     # ------------------------------------------------------------------ rendering

@@ -84,6 +84,7 @@ class CellConfig:
 
     world: Mapping[str, Any] = field(default_factory=dict)
     optics: Mapping[str, Any] = field(default_factory=dict)
+    cameras: Mapping[str, Any] = field(default_factory=dict)
     robot: Mapping[str, Any] = field(default_factory=dict)
     rotary_table: Mapping[str, Any] = field(default_factory=dict)
     interferometer: Mapping[str, Any] = field(default_factory=dict)
@@ -100,6 +101,7 @@ class CellConfig:
 
     def check(self) -> None:
         """Build every twin's settings once, so a bad key is one ``ValueError`` before any process starts."""
+        from sim_devices.camera_stream import StreamConfig
         from sim_devices.interferometer import InterferometerTwinConfig
         from sim_devices.optics import OpticsConfig
         from sim_devices.rotary_table import RotaryTableTwinConfig
@@ -107,6 +109,7 @@ class CellConfig:
 
         WorldConfig.from_dict(self.world)
         OpticsConfig.from_dict(self.optics)
+        StreamConfig.from_dict(self.cameras)
         URTwinConfig.from_dict(self.robot)
         RotaryTableTwinConfig.from_dict(self.rotary_table)
         InterferometerTwinConfig.from_dict(self.interferometer)
@@ -262,6 +265,7 @@ class CellHost:
         config.check()
         self.directory.mkdir(parents=True, exist_ok=True)
         truth_path = self.directory / "truth.jsonl"
+        trajectories = self.directory / "trajectories"  # the robot's dense truth (sim_devices.trajectory)
         world_section = {**config.world, "seed": self.seed}
         self._world = world = World(WorldConfig.from_dict(world_section), truth_path=truth_path)
         self._stopping.clear()
@@ -270,8 +274,10 @@ class CellHost:
             self._bench = bench = OpticalBench(world, config.optics)
             host = self.robot_host or free_loopback_host()
             settings: dict[str, dict[str, Any]] = {
-                "cameras": {"frames": str(self.directory / "frames"), "optics": dict(config.optics)},
-                "robot": {"host": host, "time_scale": self.time_scale, "seed": self.seed, **config.robot},
+                "cameras": {"frames": str(self.directory / "frames"), "optics": dict(config.optics),
+                            "stream": dict(config.cameras), "trajectories": str(trajectories)},
+                "robot": {"host": host, "time_scale": self.time_scale, "seed": self.seed,
+                          "trajectory_dir": str(trajectories), **config.robot},
                 "rotary_table": {**config.rotary_table, "time_scale": self.time_scale},
                 "interferometer": dict(config.interferometer),
             }

@@ -27,7 +27,7 @@ Only a band of ±6σ around each stripe is computed (about 4 % of a 1 MP frame),
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -118,28 +118,48 @@ class Renderer:
         noise: bool = True,
         quantise: bool = True,
         exposure_scale: float = 1.0,
+        roi: tuple[int, int, int, int] | None = None,
+        blur: Sequence[np.ndarray] | None = None,
     ) -> np.ndarray:
         """One frame of camera ``name`` (``img[row, col]``).
 
         ``noise=False`` gives the ideal image (background and stripes, no speckle or noise);
         ``quantise=False`` returns float32 grey levels on the output scale, unclipped.
+        ``roi`` = (offset_x, offset_y, width, height) renders only that window of the sensor.
+        ``blur``: the OPR poses ``T_M_O`` at evenly spread instants of the exposure; each stripe is
+        then the mean of its profiles at those poses (motion blur), laid out around its line at
+        ``opr_in_m`` (the exposure's middle pose).
         """
         cfg = self.bench.config
         camera = self.bench.cameras[name]
         width, height = camera.size_px
+        ox, oy, w, h = (0, 0, width, height) if roi is None else (int(v) for v in roi)
+        if not (0 <= ox and 0 <= oy and w > 0 and h > 0 and ox + w <= width and oy + h <= height):
+            raise ValueError(f"roi {roi} does not fit the {width} x {height} sensor")
         rng = np.random.default_rng([self.seed % 2**63, AXIS_NAMES.index(name), int(seq) % 2**63])
+        background = self._background_of(name)[oy:oy + h, ox:ox + w]
         if noise:
             sigma_bg = np.sqrt(cfg.read_noise**2 + cfg.conversion_gain * cfg.background_level)
-            image = self._background_noise(rng, width, height) * np.float32(sigma_bg)
-            image += self._background_of(name)
+            image = self._background_noise(rng, w, h) * np.float32(sigma_bg)
+            image += background
         else:
-            image = self._background_of(name).copy()
-        speckle = self._speckle_field(rng, width, height) if noise and cfg.speckle_contrast > 0 else None
+            image = background.copy()
+        speckle = self._speckle_field(rng, w, h) if noise and cfg.speckle_contrast > 0 else None
+        sub_poses = [np.asarray(p, dtype=float) for p in blur] if blur else None
         for stripe in stripes_on_screen(self.bench, name, np.asarray(opr_in_m, dtype=float)):
-            band = self._stripe_band(name, stripe)
+            subs = None
+            if sub_poses is not None:
+                subs = [s for pose in sub_poses for s in stripes_on_screen(self.bench, name, pose)
+                        if s.fan == stripe.fan]
+                if len(subs) != len(sub_poses):
+                    subs = None  # the fan left the screen during the exposure: no blur for this stripe
+            band = self._stripe_band(name, stripe, subs)
             if band is None:
                 continue
             rows, cols, signal = band
+            if roi is not None:
+                inside = (rows >= oy) & (rows < oy + h) & (cols >= ox) & (cols < ox + w)
+                rows, cols, signal = rows[inside] - oy, cols[inside] - ox, signal[inside]
             signal *= exposure_scale
             if speckle is not None:
                 grain = cfg.speckle_grain_px
@@ -194,8 +214,10 @@ class Renderer:
         field = gaussian_filter(rng.standard_normal(shape, dtype=np.float32), 1.0, mode="wrap")
         return field / np.float32(1.0 / (2.0 * np.sqrt(np.pi)))  # unit variance (2-D Gaussian, σ = 1 cell)
 
-    def _stripe_band(self, name: str, stripe: StripeOnScreen):
-        """Pixels within ±6σ of the stripe: (rows, cols, ideal signal in 8-bit grey levels)."""
+    def _stripe_band(self, name: str, stripe: StripeOnScreen, blur: list[StripeOnScreen] | None = None):
+        """Pixels within ±6σ of the stripe: (rows, cols, ideal signal in 8-bit grey levels). With
+        ``blur`` (the same fan's stripe at several instants of the exposure) the band also covers
+        where those lines run, and the profile is their mean."""
         bench = self.bench
         camera, screen = bench.cameras[name], bench.screens[name]
         width, height = camera.size_px
@@ -223,7 +245,11 @@ class Renderer:
         grad = np.hypot(gx, gy)
         sigma_px = stripe.sigma / grad
         slope = np.abs(np.gradient(centre, steps)) if steps.size > 1 else np.zeros(1)
-        half = int(np.ceil(6.0 * sigma_px.max() * np.sqrt(1.0 + slope.max() ** 2))) + 2
+        spread = 0.0  # how far (px) the blurred lines run from this one
+        if blur:
+            uv_steps = camera.pixel_to_screen(centre_xy)
+            spread = max(float(np.max(np.abs(sub.distance(uv_steps)) / grad)) for sub in blur)
+        half = int(np.ceil((6.0 * sigma_px.max() + spread) * np.sqrt(1.0 + slope.max() ** 2))) + 2
         offsets = np.arange(-half, half + 1)
         across = np.rint(centre)[None, :].astype(int) + offsets[:, None]
         along = np.broadcast_to(steps[None, :], across.shape)
@@ -232,9 +258,15 @@ class Renderer:
         step_index = np.broadcast_to(np.arange(steps.size)[None, :], inside.shape)[inside]
         rows, cols = (across, along) if along_x else (along, across)
         pixels = np.stack([cols, rows], -1).astype(float)
-        d_px = stripe.distance(camera.pixel_to_screen(pixels)) / grad[step_index]
+        uv = camera.pixel_to_screen(pixels)
         s = sigma_px[step_index]
-        profile = (ndtr((d_px + 0.5) / s) - ndtr((d_px - 0.5) / s)) * (_SQRT_2PI * s)
+        g = grad[step_index]
+        lines = blur or [stripe]
+        profile = np.zeros(len(uv))
+        for line in lines:
+            d_px = line.distance(uv) / g
+            profile += ndtr((d_px + 0.5) / s) - ndtr((d_px - 0.5) / s)
+        profile *= _SQRT_2PI * s / len(lines)
         # Peak level per step: 1/r from the emitter, Gaussian fall-off along the fan.
         uv_centre = camera.pixel_to_screen(centre_xy)
         ray = screen.to_m(uv_centre) - stripe.emitter_point

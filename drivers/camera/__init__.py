@@ -14,6 +14,7 @@ from drivers._settings import SettingsUnion
 from drivers.camera._interface import Camera, Frame, GrabFailed, Roi, TriggeredCamera
 from drivers.camera._pylon import SATURATION, PylonCamera, ensure_emulated_cameras
 from drivers.camera._settings import CameraSettings, PylonSettings
+from drivers.camera._stream import FrameStream, StreamStats, StreamTriple
 from drivers.camera._triplet import CameraTriplet
 
 _SETTINGS_UNION: SettingsUnion[CameraSettings] = SettingsUnion(CameraSettings, "camera")
@@ -53,10 +54,13 @@ __all__ = [
     "CameraSettings",
     "CameraTriplet",
     "Frame",
+    "FrameStream",
     "GrabFailed",
     "PylonCamera",
     "PylonSettings",
     "Roi",
+    "StreamStats",
+    "StreamTriple",
     "TriggeredCamera",
     "create",
     "create_triplet",

@@ -36,9 +36,11 @@ Host timestamps (``time.time()`` at retrieval): the emulator's ``TimeStamp`` is 
 
 from __future__ import annotations
 
+import contextlib
 import os
 import time
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -94,6 +96,7 @@ class PylonCamera:
         self._frame_id = 0
         self._loaded_image: tuple[int, int, int] | None = None  # stat of the emulator file in use
         self._device = f"camera {self.name} ({self.serial})"
+        self._stream_saved: dict[str, Any] | None = None  # what a stream changed, to put back
 
     # ------------------------------------------------------------------ lifecycle
     def open(self) -> None:
@@ -309,6 +312,125 @@ class PylonCamera:
                 last = error
         assert last is not None
         raise type(last)(self._device, "grab", f"{last.cause} (after {self.retries + 1} attempts)")
+
+    # ------------------------------------------------------------------ streaming (drivers.camera._stream)
+    @property
+    def emulated(self) -> bool:
+        """Whether this is pylon's camera emulator serving files (``emulator_image``)."""
+        return self.emulator_image is not None
+
+    def stream_begin(self, *, exposure_s: float | None, roi: Roi | None, trigger_source: str,
+                     sequence: Path | None = None) -> float:
+        """Re-arm for a stream: ROI, exposure, ``FrameStart`` on ``trigger_source`` (rising edge), the
+        chunks a real camera sends (``Timestamp``, frame counter), and for the emulator the frame
+        sequence directory. Returns the camera's timestamp tick frequency (Hz). ``stream_end`` undoes it."""
+        camera = self._require_open("start stream")
+        _, genicam = _pylon()
+        try:
+            if camera.IsGrabbing():
+                camera.StopGrabbing()
+            if self._stream_saved is None:
+                self._stream_saved = {k: self._node(k).GetValue() for k in ("Width", "Height", "OffsetX", "OffsetY")
+                                      if self._node(k) is not None and genicam.IsReadable(self._node(k))}
+            if roi is not None:
+                self._apply({"roi": roi})
+            if exposure_s is not None:
+                self._set_first(("ExposureTime", "ExposureTimeAbs"), float(exposure_s) * 1e6, "exposure")
+            self._set("TriggerSelector", "FrameStart", required=False)
+            self._set("TriggerMode", "On")
+            self._set("TriggerSource", trigger_source)
+            self._set("TriggerActivation", "RisingEdge", required=False)
+            frequency = 1e9
+            if sequence is not None:
+                self._set("ImageFilename", str(Path(sequence).resolve()))
+            else:  # a real camera stamps and counts every frame in its chunk data
+                self._set("ChunkModeActive", True, required=False)
+                for selector in ("Timestamp", "Framecounter", "FrameID"):
+                    node = self._node("ChunkSelector")
+                    if node is not None and genicam.IsWritable(node) and selector in node.GetSymbolics():
+                        node.SetValue(selector)
+                        self._set("ChunkEnable", True, required=False)
+                tick = self._node("GevTimestampTickFrequency")
+                if tick is not None and genicam.IsReadable(tick):
+                    frequency = float(tick.GetValue())
+            pylon, _ = _pylon()
+            camera.StartGrabbing(pylon.GrabStrategy_OneByOne)
+        except genicam.GenericException as error:
+            raise self._lost_or(DeviceError, "start stream", error) from None
+        return frequency
+
+    def stream_fire(self) -> None:
+        """One software trigger (no draining, no restart: the stream's frames are all wanted)."""
+        camera = self._require_open("trigger")
+        pylon, genicam = _pylon()
+        try:
+            deadline = time.monotonic() + self.timeout_s
+            while not camera.WaitForFrameTriggerReady(0, pylon.TimeoutHandling_Return):
+                if time.monotonic() >= deadline:
+                    raise DeviceTimeout(self._device, "trigger",
+                                        f"not ready for a trigger within {self.timeout_s:.3g} s")
+                time.sleep(_POLL_S)
+            camera.ExecuteSoftwareTrigger()
+        except genicam.GenericException as error:
+            raise self._lost_or(GrabFailed, "trigger", error) from None
+
+    def stream_fetch(self, timeout: float) -> tuple[Frame | None, int, int | None, str | None] | None:
+        """The next grab result of a stream, or None if none came within ``timeout`` s: (frame or None,
+        block id, chunk timestamp in ticks or None, why the buffer failed or None)."""
+        camera = self._require_open("retrieve frame")
+        pylon, genicam = _pylon()
+        deadline = time.monotonic() + timeout
+        while True:
+            try:
+                result = camera.RetrieveResult(0, pylon.TimeoutHandling_Return)
+            except genicam.GenericException as error:
+                raise self._lost_or(GrabFailed, "retrieve frame", error) from None
+            if result.IsValid():
+                break
+            if time.monotonic() >= deadline:
+                if camera.IsCameraDeviceRemoved():
+                    raise DeviceConnectionError(self._device, "retrieve frame", "the camera was removed")
+                return None
+            time.sleep(_POLL_S / 2)
+        try:
+            block = int(result.GetBlockID())
+            ticks: int | None = None
+            for chunk in ("ChunkTimestamp",):
+                with contextlib.suppress(Exception):
+                    ticks = int(getattr(result, chunk).Value)
+            if ticks is None or ticks == 0:
+                ticks = int(result.GetTimeStamp()) or None  # the emulator's is always 0: no stamp
+            if not result.GrabSucceeded():
+                description = result.GetErrorDescription().strip() or "unknown error"
+                return None, block, ticks, f"{description} (error 0x{result.GetErrorCode():x})"
+            image = np.array(result.GetArray(), copy=True)
+            pixel_format = camera.PixelFormat.GetValue()
+        finally:
+            result.Release()
+        frame = Frame(image, time.time(), block, self.serial, SATURATION.get(pixel_format, int(image.max())))
+        return frame, block, ticks, None
+
+    def stream_end(self) -> None:
+        """Back to single grabs: ROI, trigger source, chunks and the emulator's image as they were."""
+        camera = self._camera
+        if camera is None:
+            self._stream_saved = None
+            return
+        _, genicam = _pylon()
+        try:
+            if camera.IsGrabbing():
+                camera.StopGrabbing()
+            self._set("ChunkModeActive", False, required=False)
+            saved, self._stream_saved = self._stream_saved or {}, None
+            for key in ("OffsetX", "OffsetY", "Width", "Height", "OffsetX", "OffsetY"):
+                if key in saved:
+                    self._set(key, saved[key], required=False)
+            if self.emulator_image is not None:
+                self._set("ImageFilename", str(self.emulator_image.resolve()))
+            self._apply(self._settings)
+            self._start()
+        except genicam.GenericException as error:
+            raise self._lost_or(DeviceError, "end stream", error) from None
 
     # ------------------------------------------------------------------ emulator helpers
     def _image_stamp(self) -> tuple[int, int, int] | None:

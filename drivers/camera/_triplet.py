@@ -5,7 +5,11 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 from drivers._errors import DeviceConnectionError, DeviceError, DeviceTimeout
-from drivers.camera._interface import Camera, Frame, GrabFailed, TriggeredCamera
+from drivers.camera._interface import Camera, Frame, GrabFailed, Roi, TriggeredCamera
+from drivers.camera._pylon import PylonCamera
+from drivers.camera._stream import FrameStream
+
+DEFAULT_STREAM_EXPOSURE = 1e-3  # s, when neither the call nor the camera's settings give one
 
 
 class CameraTriplet:
@@ -87,6 +91,51 @@ class CameraTriplet:
             except DeviceError as error:
                 failures[key] = error
         return frames, failures
+
+    def start_stream(self, rate_hz: float, *, roi: Roi | Mapping[str, Roi | None] | None = None,
+                     exposure_s: float | Mapping[str, float] | None = None, hardware_trigger: bool = True,
+                     timeout: float = 30.0) -> FrameStream:
+        """Trigger every camera together at ``rate_hz`` until ``stop()``; iterate the returned
+        ``FrameStream`` for the frames, one ``StreamTriple`` per trigger (``drivers.camera._stream``).
+
+        Parameters
+        ----------
+        rate_hz : float
+            Pulses per second.
+        roi : Roi or mapping camera → Roi, optional
+            Region of interest per camera (a smaller one reads out faster: a camera misses pulses
+            that come while it still reads out the previous frame).
+        exposure_s : float or mapping camera → float, optional
+            Default: each camera's ``exposure_s`` setting, else 1 ms.
+        hardware_trigger : bool
+            Real cameras: the common trigger line (``Line1``, or the camera's ``trigger_source``
+            line) driven by the cell; False: software triggers from this process at ``rate_hz``.
+            Emulated cameras: the simulated cell's trigger line either way.
+        timeout : float
+            Longest wait, s, for the next triple while iterating.
+
+        Raises
+        ------
+        ValueError
+            A rate out of (0, 10 kHz], a camera that cannot stream, or emulated and real cameras mixed.
+        DeviceError, DeviceTimeout
+            The cameras (or the simulated trigger line) could not be armed.
+        """
+        cameras: dict[str, PylonCamera] = {}
+        for key, camera in self.cameras.items():
+            if not isinstance(camera, PylonCamera):
+                raise ValueError(f"{self.name}: camera {key} ({type(camera).__name__}) cannot stream")
+            cameras[key] = camera
+        rois = {key: (roi.get(key) if isinstance(roi, Mapping) else roi) for key in cameras}
+        exposures = {}
+        for key, camera in cameras.items():
+            value = exposure_s.get(key) if isinstance(exposure_s, Mapping) else exposure_s
+            value = value if value is not None else camera.settings.exposure_s
+            exposures[key] = float(value if value is not None else DEFAULT_STREAM_EXPOSURE)
+            if not 0 < exposures[key] < 1:
+                raise ValueError(f"{self.name}: exposure of camera {key} must be in (0, 1) s, got {exposures[key]!r}")
+        return FrameStream(cameras, rate_hz, exposures, rois, hardware_trigger, timeout, self.name)
+
 
 def _describe(failures: Mapping[str, DeviceError]) -> str:
     return "; ".join(f"camera {key} missing: {error.cause}" for key, error in failures.items())

@@ -114,9 +114,47 @@ class Robot(Protocol):
         timeout: float | None = None,
     ) -> None: ...
 
+    def move_path(
+        self,
+        poses: np.ndarray,
+        speed: float | Sequence[float] = 0.25,
+        acceleration: float | Sequence[float] = 1.2,
+        blend_radius: float | Sequence[float] = 0.0,
+        *,
+        asynchronous: bool = False,
+        timeout: float | None = None,
+    ) -> None:
+        """Linear moves through the waypoints ``poses`` (n, 6), corners rounded by ``blend_radius`` (m)."""
+        ...
+
+    def move_circular(
+        self,
+        via: np.ndarray,
+        to: np.ndarray,
+        speed: float = 0.25,
+        acceleration: float = 1.2,
+        *,
+        blend_radius: float = 0.0,
+        timeout: float | None = None,
+    ) -> None:
+        """Circular move(s) from the current pose through ``via`` to ``to`` ((6,) or (n, 6) for n arcs)."""
+        ...
+
     def stop(self, deceleration: float = 2.0) -> None: ...
 
     def wait_until_steady(self, timeout: float = 10.0) -> None: ...
+
+    def is_steady(self) -> bool:
+        """The controller's own view: its encoders at rest (the tool may still ring)."""
+        ...
+
+    def controller_time(self) -> float:
+        """The controller's clock, s (UR: the RTDE ``timestamp`` of the latest package)."""
+        ...
+
+    def last_move_done_time(self) -> float | None:
+        """Controller time at which the last blocking move was reported done (None before one)."""
+        ...
 
     def set_tcp(self, offset: np.ndarray) -> None: ...
 

@@ -21,6 +21,15 @@ How it keeps every promise of the interface
   stopped program (``ProgramStopped``), lost connection (``DeviceConnectionError``), timeout
   (``DeviceTimeout``) or a move that ends away from its target (``MoveFailed``) each raise their
   typed error instead of the client's 300 s wait.
+- **Moves for measuring in motion.** ``move_path`` is ur_rtde's ``moveL(path)`` (linear moves
+  through waypoints, corners rounded by a blend radius: the client injects the path into its
+  control script and re-uploads it); ``move_circular`` sends ``movec`` arcs as a custom script
+  function (ur_rtde 1.6.5's paths refuse ``MoveC``) whose last statement writes an end marker to
+  ``output_int_register_12`` (+24): the controller time of the first package carrying it is the
+  move's done time. Every blocking move leaves that time in ``last_move_done_time()`` (for moveL,
+  moveJ and paths: the RTDE ``timestamp`` read right after the async-progress register showed the
+  move finished); ``controller_time()`` is the latest RTDE ``timestamp``; ``is_steady()`` is the
+  controller's ``isSteady()`` (its encoders at rest — not the tool's true residual vibration).
 - **Test conditions from the controller.** ``identity()`` asks the dashboard for the model, serial
   number and PolyScope version; ``set_payload()`` sends ``setPayload`` and waits until the
   controller's RTDE ``payload``/``payload_cog`` outputs report the new values.
@@ -102,6 +111,7 @@ class URRobot:
         self._link: WorkerLink | None = None
         self._opened = False  # the link's open() completed: its worker can answer a polite close
         self._broken: str | None = None
+        self._last_done: float | None = None
         self._lifecycle = threading.RLock()  # re-entrant: a signal handler may close() while open() waits
 
     @property
@@ -261,8 +271,119 @@ class URRobot:
         move_timeout = self.move_timeout if timeout is None else float(timeout)
         # Readiness (script re-upload and its start) and the send are command calls; then the watch.
         bound = 3 * self.command_timeout + (0.0 if asynchronous else move_timeout + 1.0)
-        self._request(operation, "move", operation, command.tolist(), float(speed), float(acceleration),
-                      bool(asynchronous), move_timeout, target.tolist(), bound=bound)
+        done = self._request(operation, "move", operation, command.tolist(), float(speed), float(acceleration),
+                             bool(asynchronous), move_timeout, target.tolist(), bound=bound)
+        if done is not None:
+            self._last_done = float(done)
+
+    def move_path(self, poses: np.ndarray, speed: float | Sequence[float] = 0.25,
+                  acceleration: float | Sequence[float] = 1.2, blend_radius: float | Sequence[float] = 0.0, *,
+                  asynchronous: bool = False, timeout: float | None = None) -> None:
+        """Linear moves through the TCP poses ``poses`` (n, 6), not stopping at a waypoint whose blend
+        radius is > 0 (ur_rtde ``moveL(path)``).
+
+        Parameters
+        ----------
+        poses : (n, 6) array
+            Waypoints [x, y, z, rx, ry, rz] (m, rotation vector), the last one the target.
+        speed, acceleration : float or n floats
+            Tool speed (m/s) and acceleration (m/s²) of each move.
+        blend_radius : float or n floats
+            Radius (m) of the corner blend at each waypoint (the last one is always 0: the robot
+            stops there). A blend may be at most half of either segment it joins.
+        asynchronous : bool
+            Return once the controller runs the path (``stop()`` interrupts it).
+        timeout : float, optional
+            Seconds the blocking move may take (default ``move_timeout``).
+
+        Raises
+        ------
+        MotionRefused
+            A waypoint outside the envelope, a speed or acceleration over its cap, a blend radius
+            that is negative or overlaps a neighbouring blend — nothing is sent.
+        ProtectiveStop, EmergencyStop, ProgramStopped, MoveFailed, DeviceConnectionError, DeviceTimeout
+        """
+        targets = np.asarray(poses, dtype=float)
+        if targets.ndim != 2 or targets.shape[1] != 6 or len(targets) < 1 or not np.all(np.isfinite(targets)):
+            raise MotionRefused(self.name, "check path", f"poses must be an (n, 6) array of finite numbers, "
+                                f"got shape {targets.shape}")
+        n = len(targets)
+        speeds, accels, blends = (_per_move(value, n, name, self.name) for value, name in
+                                  ((speed, "speed"), (acceleration, "acceleration"), (blend_radius, "blend_radius")))
+        for pose in targets:
+            self.envelope.check_pose(pose, self.name)
+        for v, a in zip(speeds, accels):
+            self.envelope.check_speed(float(v), float(a), device=self.name)
+        blends[-1] = 0.0
+        if np.any(blends < 0) or np.any(blends > 2.0):
+            raise MotionRefused(self.name, "check path", "blend radii must lie in [0, 2] m")
+        if n > 1 and np.any(blends[:-1] > 0):
+            corners = np.vstack([self.tcp_pose()[None, :3], targets[:, :3]])
+            segments = np.linalg.norm(np.diff(corners, axis=0), axis=1)
+            for i in range(n - 1):
+                limit = 0.5 * min(segments[i], segments[i + 1])
+                if blends[i] > limit + 1e-12:
+                    raise MotionRefused(self.name, "check path",
+                                        f"blend radius {blends[i] * 1e3:.3f} mm at waypoint {i + 1} overlaps its "
+                                        f"neighbours (at most {limit * 1e3:.3f} mm: half of either segment)")
+        rows = [[*map(float, pose), float(v), float(a), float(r)] for pose, v, a, r in zip(targets, speeds, accels,
+                                                                                        blends)]
+        move_timeout = self.move_timeout if timeout is None else float(timeout)
+        bound = 5 * self.command_timeout + (0.0 if asynchronous else move_timeout + 1.0)
+        done = self._request("moveL path", "move_path", rows, bool(asynchronous), move_timeout,
+                             targets[-1].tolist(), bound=bound)
+        if done is not None:
+            self._last_done = float(done)
+
+    def move_circular(self, via: np.ndarray, to: np.ndarray, speed: float = 0.25, acceleration: float = 1.2, *,
+                      blend_radius: float = 0.0, timeout: float | None = None) -> None:
+        """Circular move(s) (URScript ``movec``, orientation interpolated to the target's): from the
+        current TCP pose through ``via`` to ``to``; with (n, 6) arrays, n arcs one after the other,
+        blended with ``blend_radius`` where they meet (two half circles make a full one). Blocking.
+
+        Raises
+        ------
+        MotionRefused
+            A via or target pose, or a point of an arc, outside the envelope; three points on one
+            line; a speed or acceleration over its cap — nothing is sent.
+        ProtectiveStop, EmergencyStop, MoveFailed, DeviceConnectionError, DeviceTimeout
+            A fault during the move leaves ur_rtde's client waiting for its custom script, so the
+            connection counts as broken afterwards (``open()`` again).
+        """
+        vias = np.atleast_2d(np.asarray(via, dtype=float))
+        tos = np.atleast_2d(np.asarray(to, dtype=float))
+        if vias.shape != tos.shape or vias.shape[1] != 6 or not (np.all(np.isfinite(vias)) and
+                                                                   np.all(np.isfinite(tos))):
+            raise MotionRefused(self.name, "check arc", "via and to must be finite poses of the same shape (6,) or "
+                                f"(n, 6); got {vias.shape} and {tos.shape}")
+        self.envelope.check_speed(float(speed), float(acceleration), device=self.name)
+        if not (np.isfinite(blend_radius) and 0 <= blend_radius <= 2.0):
+            raise MotionRefused(self.name, "check arc", "blend_radius must lie in [0, 2] m")
+        start = self.tcp_pose()[:3]
+        for v, t in zip(vias, tos):
+            self.envelope.check_pose(v, self.name)
+            self.envelope.check_pose(t, self.name)
+            for point in arc_points(start, v[:3], t[:3], self.name):
+                self.envelope.check_pose(np.concatenate([point, t[3:]]), self.name)
+            start = t[:3]
+        move_timeout = self.move_timeout if timeout is None else float(timeout)
+        arcs = [[v.tolist(), t.tolist()] for v, t in zip(vias, tos)]
+        done = self._request("moveC", "move_circular", arcs, float(speed), float(acceleration), float(blend_radius),
+                             move_timeout, bound=5 * self.command_timeout + move_timeout + 1.0)
+        self._last_done = float(done)
+
+    def last_move_done_time(self) -> float | None:
+        """Controller time (s, RTDE ``timestamp``) at which the last blocking move was reported done —
+        the robot's attained-pose signal — or None before the first one."""
+        return self._last_done
+
+    def controller_time(self) -> float:
+        """The controller's clock: RTDE ``timestamp`` (s since the controller started) of the latest package."""
+        return float(self._request("read controller time", "controller_time"))
+
+    def is_steady(self) -> bool:
+        """The controller's ``isSteady()``: its encoders (not the tool) at rest."""
+        return bool(self._request("isSteady", "is_steady", bound=3 * self.command_timeout))
 
     def stop(self, deceleration: float = 2.0) -> None:
         self._request("stopL", "stop", float(deceleration), bound=self.command_timeout)
@@ -317,3 +438,27 @@ class URRobot:
         wait = self.command_timeout if timeout is None else float(timeout)
         self._request("unlock protective stop", "unlock_protective_stop", wait,
                       bound=wait + self.connect_timeout + DASHBOARD_READ_TIMEOUT)
+
+
+def _per_move(value: float | Sequence[float], n: int, name: str, device: str) -> np.ndarray:
+    array = np.broadcast_to(np.asarray(value, dtype=float), (n,)).copy() if np.ndim(value) == 0 else \
+        np.asarray(value, dtype=float)
+    if array.shape != (n,) or not np.all(np.isfinite(array)):
+        raise MotionRefused(device, "check path", f"{name} must be one number or one per waypoint ({n})")
+    return array
+
+
+def arc_points(start: np.ndarray, via: np.ndarray, end: np.ndarray, device: str, samples: int = 32) -> np.ndarray:
+    """Points along the circular arc from ``start`` through ``via`` to ``end`` (for the envelope check)."""
+    a, b = via - start, end - start
+    normal = np.cross(a, b)
+    area = float(np.linalg.norm(normal))
+    if area < 1e-12 or min(np.linalg.norm(a), np.linalg.norm(b), np.linalg.norm(end - via)) < 1e-6:
+        raise MotionRefused(device, "check arc", "start, via and target must be three distinct points not on one line")
+    center = start + (np.dot(a, a) * np.cross(b, normal) + np.dot(b, b) * np.cross(normal, a)) / (2.0 * area**2)
+    radius = float(np.linalg.norm(start - center))
+    e1 = (start - center) / radius
+    e2 = np.cross(normal / area, e1)
+    sweep = float(np.arctan2((end - center) @ e2, (end - center) @ e1) % (2 * np.pi))
+    phi = np.linspace(0.0, sweep, samples)
+    return center + radius * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2)

@@ -52,7 +52,10 @@ UNLOCK_RETRY_PERIOD = 0.2  # s between attempts while the controller refuses an 
 
 FAILURE_KINDS = ("timeout", "connection", "protective_stop", "emergency_stop", "program_stopped", "move_failed",
                  "protocol")
-QUICK_METHODS = frozenset({"tcp_pose", "joint_positions", "state", "ping"})  # cached data: never wait
+QUICK_METHODS = frozenset({"tcp_pose", "joint_positions", "state", "ping", "controller_time"})  # never wait
+DONE_MARKER_REGISTER = 12  # output_int_register_12 (+24 upper range): a custom move's end, streamed by RTDE
+CUSTOM_MOVE_FUNCTION = "opr_move_circular"
+WATCH_PERIOD = 0.0005  # s between polls while a blocking move is watched (the done time's resolution)
 
 
 class Failure(Exception):
@@ -127,6 +130,7 @@ class Session:
         self._calls = _CallThread()
         self._motion_lock = threading.Lock()
         self._last_stamp = (-1.0, 0.0)
+        self.custom_move = threading.Event()  # a circular move runs as a custom script (stop it by dashboard)
 
     # ----------------------------------------------------------------------------- connection
     def do_ping(self) -> int:
@@ -204,7 +208,9 @@ class Session:
         if self.control is None or self.receive is None or self.broken is not None:
             return
         with contextlib.suppress(Exception):
-            if (self.moving.is_set() or self.control.getAsyncOperationProgressEx().isAsyncOperationRunning()
+            if self.custom_move.is_set():
+                self._dashboard_stop()
+            elif (self.moving.is_set() or self.control.getAsyncOperationProgressEx().isAsyncOperationRunning()
                     or any(abs(v) > 1e-6 for v in self.receive.getActualTCPSpeed())):
                 self.control.stopL(2.0, False)
 
@@ -308,8 +314,9 @@ class Session:
         return [float(v) for v in self._call("getForwardKinematics", lambda: control.getForwardKinematics(q, offset))]
 
     def do_move(self, operation: str, command: list[float], speed: float, acceleration: float, asynchronous: bool,
-                timeout: float, target_pose: list[float]) -> None:
-        """``moveL``/``moveJ`` sent asynchronously on the wire and watched here unless ``asynchronous``."""
+                timeout: float, target_pose: list[float]) -> float | None:
+        """``moveL``/``moveJ`` sent asynchronously on the wire and watched here unless ``asynchronous``;
+        returns the controller time at which a blocking move was reported done."""
         with self._motion_lock:
             control, _ = self._ensure_ready(operation)
             send = control.moveL if operation == "moveL" else control.moveJ
@@ -317,19 +324,42 @@ class Session:
             if not self._call(operation, lambda: send(command, speed, acceleration, True)):
                 raise self._failure(operation)
             if asynchronous:
-                return
-            self.moving.set()
-            try:
-                self._wait_for_operation(operation, op_before, timeout)
-                self._check_reached(operation, target_pose)
-            finally:
-                self.moving.clear()
+                return None
+            return self._watch(operation, op_before, timeout, target_pose)
 
-    def _wait_for_operation(self, operation: str, op_before: int, timeout: float) -> None:
+    def do_move_path(self, path: list[list[float]], asynchronous: bool, timeout: float,
+                     target_pose: list[float]) -> float | None:
+        """ur_rtde's ``moveL(path)``: rows ``[x, y, z, rx, ry, rz, speed, acceleration, blend]``. The
+        client injects the path into its control script, re-uploads it and sends command 45
+        (asynchronous on the wire; watched here unless ``asynchronous``)."""
+        operation = "moveL path"
+        with self._motion_lock:
+            control, _ = self._ensure_ready(operation)
+            op_before = self._call(operation, lambda: control.getAsyncOperationProgressEx().operationId())
+            # Stopping, re-uploading and restarting the script take a few cycles on top of a command.
+            if not self._call(operation, lambda: control.moveL(path, True), timeout=2 * self.command_timeout):
+                raise self._failure(operation)
+            if asynchronous:
+                return None
+            return self._watch(operation, op_before, timeout, target_pose)
+
+    def _watch(self, operation: str, op_before: int, timeout: float, target_pose: Sequence[float]) -> float:
+        self.moving.set()
+        try:
+            done = self._wait_for_operation(operation, op_before, timeout)
+            self._check_reached(operation, target_pose)
+        finally:
+            self.moving.clear()
+        return done
+
+    def _wait_for_operation(self, operation: str, op_before: int, timeout: float) -> float:
         """Poll the async-progress register until the operation that started after ``op_before``
-        has finished, raising the failure for whatever else happens first."""
+        has finished (its id changed, or it was seen running: a re-uploaded script counts from 0
+        again), raising the failure for whatever else happens first. Returns the controller time
+        (RTDE ``timestamp``) read right after the finish was seen."""
         control, receive = self.control, self.receive
         deadline = time.monotonic() + timeout
+        seen_running = False
         while True:
             if not control.isConnected() or not receive.isConnected():
                 self.broken = f"connection lost during {operation}"
@@ -339,8 +369,10 @@ class Session:
             if error is not None:
                 raise error
             status = control.getAsyncOperationProgressEx()
-            if status.operationId() != op_before and not status.isAsyncOperationRunning():
-                return
+            running = status.isAsyncOperationRunning()
+            seen_running = seen_running or running
+            if (seen_running or status.operationId() != op_before) and not running:
+                return float(receive.getTimestamp())
             if receive.getRuntimeState() != RUNTIME_PLAYING:
                 raise Failure("program_stopped", operation, "the control script stopped during the move")
             if time.monotonic() > deadline:
@@ -348,7 +380,102 @@ class Session:
                     self.do_stop(2.0)
                 finally:
                     raise Failure("timeout", operation, f"the move did not finish within {timeout} s")
-            time.sleep(0.002)
+            time.sleep(WATCH_PERIOD)
+
+    def do_move_circular(self, arcs: list[list[list[float]]], speed: float, acceleration: float, blend: float,
+                         timeout: float) -> float:
+        """``movec`` arcs (``[via, to]`` pairs, chained with ``blend`` between them) as a custom script
+        function (ur_rtde 1.6.5's paths refuse ``MoveC``). The client blocks in
+        ``sendCustomScriptFunction`` until the script's done flag, so this thread watches the safety
+        bits and the end marker the script writes to an RTDE output register meanwhile. Returns the
+        controller time of the first package that carried the marker."""
+        operation = "moveC"
+        with self._motion_lock:
+            control, receive = self._ensure_ready(operation)
+            register = DONE_MARKER_REGISTER + (24 if self.upper_range_registers else 0)
+            marker = int(receive.getOutputIntRegister(register)) % 1_000_000 + 1  # never the value it holds now
+            lines = []
+            for index, (via, to) in enumerate(arcs):
+                radius = blend if index < len(arcs) - 1 else 0.0
+                lines.append(f"movec(p{_script_list(via)}, p{_script_list(to)}, a={acceleration!r}, v={speed!r}, "
+                             f"r={radius!r}, mode=0)")
+            lines.append(f"write_output_integer_register({register}, {marker})")
+            box: dict[str, Any] = {}
+
+            def send() -> None:
+                try:
+                    box["ok"] = control.sendCustomScriptFunction(CUSTOM_MOVE_FUNCTION, "\n".join(lines))
+                except BaseException as exc:  # handed to the watcher
+                    box["error"] = exc
+
+            sender = threading.Thread(target=send, name="ur-rtde-custom-move", daemon=True)
+            self.custom_move.set()
+            self.moving.set()
+            try:
+                sender.start()
+                done = self._watch_custom(operation, sender, box, register, marker, timeout)
+            finally:
+                self.moving.clear()
+                self.custom_move.clear()
+            self._check_reached(operation, arcs[-1][1])
+            return done
+
+    def _watch_custom(self, operation: str, sender: threading.Thread, box: dict[str, Any], register: int, marker: int,
+                      timeout: float) -> float:
+        receive = self.receive
+        deadline = time.monotonic() + timeout
+        done: float | None = None
+        while True:
+            if done is None:
+                value = receive.getOutputIntRegister(register)  # the value first: its package is not newer
+                stamp = float(receive.getTimestamp())
+                if value == marker:
+                    done = stamp
+            if not sender.is_alive():
+                break
+            if not receive.isConnected():
+                self.broken = f"connection lost during {operation}"
+                raise Failure("connection", operation, "the connection was lost during the move", broken=True)
+            error = self._safety_error(operation)
+            if error is not None:
+                # The client waits up to 600 s in sendCustomScript for a flag that will not come.
+                self.broken = f"{error.cause} during a circular move (the client waits for its script)"
+                raise Failure(error.kind, operation, error.cause, broken=True)
+            if time.monotonic() > deadline:
+                with contextlib.suppress(Exception):
+                    self._dashboard_stop()
+                self.broken = f"{operation} did not finish within {timeout} s"
+                raise Failure("timeout", operation, f"the move did not finish within {timeout} s", broken=True)
+            time.sleep(WATCH_PERIOD)
+        if "error" in box or not box.get("ok"):
+            cause = f"ur_rtde: {box['error']}" if "error" in box else "the controller did not run the circular move"
+            raise Failure("move_failed", operation, cause)
+        if done is None:  # the marker came and went before a poll saw it (the script re-upload clears nothing)
+            value = receive.getOutputIntRegister(register)
+            if value != marker:
+                raise Failure("move_failed", operation, "the circular move ended without its end marker")
+            done = float(receive.getTimestamp())
+        return done
+
+    def _dashboard_stop(self) -> None:
+        client = importlib.import_module("dashboard_client").DashboardClient(self.host)
+        client.connect(max(1, int(self.connect_timeout * 1000)))
+        try:
+            client.stop()
+        finally:
+            with contextlib.suppress(Exception):
+                client.disconnect()
+
+    def do_is_steady(self) -> bool:
+        """The controller's own ``isSteady()`` (command 47): its encoders at rest."""
+        control, _ = self._ensure_ready("isSteady")
+        return bool(self._call("isSteady", control.isSteady))
+
+    def do_controller_time(self) -> float:
+        """RTDE ``timestamp`` of the latest package: controller seconds."""
+        _, receive = self._require("read controller time")
+        self._check_fresh("read controller time")
+        return float(receive.getTimestamp())
 
     def _check_reached(self, operation: str, target: Sequence[float]) -> None:
         """The reported pose must reach the target (the data stream may lag the done flag a cycle)."""
@@ -372,6 +499,12 @@ class Session:
 
     def do_stop(self, deceleration: float) -> None:
         control, _ = self._require("stopL")
+        if self.custom_move.is_set():  # the control script is not running: its stopL would never be answered
+            try:
+                self._dashboard_stop()
+            except RuntimeError as exc:
+                raise Failure("connection", "stop", f"dashboard: {exc}") from None
+            return
         self._call("stopL", lambda: control.stopL(deceleration, False))
 
     def do_wait_until_steady(self, timeout: float) -> None:
@@ -477,6 +610,11 @@ class Session:
             if time.monotonic() > deadline:
                 raise Failure("timeout", operation, f"the stop did not clear within {timeout} s")
             time.sleep(0.005)
+
+
+def _script_list(values: Sequence[float]) -> str:
+    """``[v0, v1, ...]`` with every digit of each float (URScript reads Python's repr of a float)."""
+    return "[" + ", ".join(repr(float(v)) for v in values) + "]"
 
 
 def rotation_angle_between(rotvec_a: Sequence[float], rotvec_b: Sequence[float]) -> float:

@@ -63,6 +63,32 @@ class URTwinConfig:
         Cap on the RTDE output frequency in Hz (None: honour what the client asks for).
     stop_deceleration : float
         Path deceleration of a protective or emergency stop (m/s² or rad/s²).
+    structure_dynamics : bool
+        Model the structural modes the encoders do not see (``_dynamics.py``): the TRUE tool lags
+        and sags during motion and rings down after it, while the controller reports the move done
+        once its encoders have settled. False: the true pose is the encoder pose plus the visit's
+        static error.
+    structure_frequencies, structure_dampings : six floats each
+        Natural frequency (Hz, without payload) and damping ratio of the modes along and about the
+        base x, y, z axes.
+    structure_lag : float
+        Seconds of travel by which the true tool lags the encoders at constant speed (gear
+        wind-up; the residual vibration after a stop grows with speed through it).
+    structure_inertial_gain : float
+        Share of the commanded acceleration that loads the modes (static sag ``g·a/ω²``).
+    structure_tilt_gain : float
+        Tilt of the tool (rad) per m/s² of linear acceleration, about ``ẑ × a``.
+    structure_payload_reference : float
+        Payload (kg) that lowers every structural frequency by √2 (``ω / sqrt(1 + m/m_ref)``).
+    truth_rate : float
+        Samples per simulated second of the dense truth (each move's trajectory record); 0: none.
+    truth_tail_tolerance : float
+        A move's record ends once the structural residual is below this (m or rad) and the
+        encoders are at rest, or when the next move starts.
+    truth_tail_max : float
+        ... or at the latest this many simulated seconds after the move's profile ended.
+    trajectory_dir : str or None
+        Where the trajectory files go (``sim_devices.trajectory``); None: kept in memory only.
     """
 
     seed: int = 0
@@ -88,6 +114,17 @@ class URTwinConfig:
     world_publish_period: float = 0.02
     max_stream_rate: float | None = None
     stop_deceleration: float = 10.0
+    structure_dynamics: bool = True
+    structure_frequencies: list[float] = field(default_factory=lambda: [12.0, 13.0, 14.5, 10.0, 11.0, 13.5])
+    structure_dampings: list[float] = field(default_factory=lambda: [0.28, 0.25, 0.3, 0.25, 0.27, 0.3])
+    structure_lag: float = 40e-6
+    structure_inertial_gain: float = 0.06
+    structure_tilt_gain: float = 2e-5
+    structure_payload_reference: float = 5.0
+    truth_rate: float = 1000.0
+    truth_tail_tolerance: float = 1e-9
+    truth_tail_max: float = 3.0
+    trajectory_dir: str | None = None
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any] | None) -> URTwinConfig:
@@ -96,6 +133,9 @@ class URTwinConfig:
             data["version"] = tuple(int(v) for v in data["version"])
         if "tcp_offset" in data:
             data["tcp_offset"] = [float(v) for v in data["tcp_offset"]]
+        for key in ("structure_frequencies", "structure_dampings"):
+            if key in data:
+                data[key] = [float(v) for v in data[key]]
         config = cls(**data)
         if not config.time_scale > 0:
             raise ValueError(f"UR twin config: time_scale must be > 0, got {config.time_scale}")
@@ -105,6 +145,15 @@ class URTwinConfig:
                                           and config.following_lag >= 0 and config.settle_tolerance > 0):
             raise ValueError("UR twin config: the servo needs servo_frequency > 0, 0 < servo_damping < 1, "
                              "following_lag ≥ 0 and settle_tolerance > 0")
+        if config.structure_dynamics and not (
+                len(config.structure_frequencies) == 6 and len(config.structure_dampings) == 6
+                and all(f > 0 for f in config.structure_frequencies)
+                and all(0 < z < 1 for z in config.structure_dampings)
+                and config.structure_lag >= 0 and config.structure_payload_reference > 0):
+            raise ValueError("UR twin config: the structure needs six frequencies > 0, six dampings in (0, 1), "
+                             "structure_lag ≥ 0 and structure_payload_reference > 0")
+        if not config.truth_rate >= 0 or not config.truth_tail_tolerance > 0 or not config.truth_tail_max > 0:
+            raise ValueError("UR twin config: need truth_rate ≥ 0, truth_tail_tolerance > 0 and truth_tail_max > 0")
         if not str(config.serial_number).isdigit():
             raise ValueError("UR twin config: serial_number must be digits")
         return config

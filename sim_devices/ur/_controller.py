@@ -35,10 +35,18 @@ after the final pose was first streamed (``DONE_AFTER_CYCLES``), the script is t
 "done" reads the final pose on any RTDE connection and every twin has seen the attained pose.
 When a move is planned, its attained flange pose is announced to the world (``World.announce``),
 so the camera twin can render the final frames while the arm is still moving.
+
+The TRUE tool pose (``_dynamics``) adds what the encoders cannot see to the encoder pose: the
+structural modes (a lag and sag during motion, a residual vibration after it) and the visit's
+static error, blended in along the move. It is sampled at ``truth_rate`` in the cycle thread and
+written per move to a trajectory record (``_trajectory``, ``sim_devices.trajectory``). The world
+gets the true pose while the arm moves and, once the encoders have settled, the attained pose the
+structure settles onto; the ring-down around it after "done" is in the trajectory record only.
 """
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 import zlib
@@ -59,8 +67,10 @@ from sim_devices._transforms import (
 from sim_devices.faults import FaultKind, FaultPlan
 from sim_devices.ur import _kinematics as kin
 from sim_devices.ur._config import URTwinConfig
+from sim_devices.ur._dynamics import Structure, TruthGrid, matrix_to_quaternion_batch, rotvec_to_matrix_batch
 from sim_devices.ur._motion import Motion
 from sim_devices.ur._servo import JointServos
+from sim_devices.ur._trajectory import TrajectoryRecorder
 
 # RTDE enumerations (UR RTDE guide).
 RUNTIME_STOPPED, RUNTIME_PLAYING = 1, 2
@@ -105,6 +115,12 @@ class MoveRun:
     end_cycle: int = 0
     settled_at: float = 0.0  # simulated time the servo residual fell below the tolerance
     done: threading.Event = field(default_factory=threading.Event)
+    # The visit's static error (position, rotation vector), blended from the previous one along the move.
+    error_from: tuple[np.ndarray, np.ndarray] = field(default_factory=lambda: (np.zeros(3), np.zeros(3)))
+    error_to: tuple[np.ndarray, np.ndarray] = field(default_factory=lambda: (np.zeros(3), np.zeros(3)))
+    progress: Callable[[int], None] | None = None  # told each time a path passes a waypoint
+    waypoints_passed: int = 0
+    record: int = 0  # its trajectory record's move number (0: none)
 
 
 class URController:
@@ -149,6 +165,21 @@ class URController:
         self.run: MoveRun | None = None
         self._steady_since = 0.0
         self._last_publish = 0.0
+        # The truth beyond the encoders: structural modes, the static error, the dense record.
+        self.truth_enabled = config.truth_rate > 0
+        self.structure = (Structure(config.structure_frequencies, config.structure_dampings, config.structure_lag,
+                                    config.structure_inertial_gain, config.structure_tilt_gain,
+                                    config.structure_payload_reference)
+                          if config.structure_dynamics and self.truth_enabled else None)
+        self._grid = TruthGrid(self.tcp_pose)
+        self.static_error = (np.zeros(3), np.zeros(3))  # of the last finished visit
+        self._encoder_deviation = np.zeros(6)  # actual − target TCP: position, small rotation vector
+        self.true_flange = flange.copy()
+        self._profile_ended = 0.0  # simulated time the last move's profile ended (for the record's tail)
+        self.recorder = TrajectoryRecorder(config.trajectory_dir if self.truth_enabled else None,
+                                           world.truth if self.truth_enabled else None,
+                                           {"time_scale": config.time_scale, "control_period": self.period,
+                                            "truth_rate": config.truth_rate})
 
         self.cycle = 0
         self.t_sim = 0.0
@@ -185,6 +216,8 @@ class URController:
     # ----------------------------------------------------------------------------- lifecycle
     def start(self) -> None:
         self._wall0 = time.monotonic()
+        self.recorder.write_clock({"monotonic_origin": self._wall0, "period": self.period,
+                                   "time_scale": self.config.time_scale})
         self._thread.start()
         self._finisher.start()
 
@@ -199,6 +232,8 @@ class URController:
         for thread in (self._thread, self._finisher):
             if thread.is_alive():
                 thread.join(2.0)
+        with self.lock:
+            self.recorder.close()
 
     def add_cycle_listener(self, listener: Callable[[CycleState], None]) -> None:
         """``listener(state)`` on the cycle thread for every cycle (keep it short)."""
@@ -247,6 +282,7 @@ class URController:
             if self.safety_bits & (SAFETY_BIT_PROTECTIVE | SAFETY_BIT_ESTOP):
                 raise RuntimeError("motion refused: the robot is stopped by its safety system")
             t = self.t_sim
+            error_from = self._static_error_now(t)
             if self.run is not None:
                 self.run.phase = "replaced"
                 self.run.done.set()
@@ -255,7 +291,16 @@ class URController:
                      self._rng.normal(0.0, self.config.repeatability_rotation_std, 3))
             planned = self._attained_flange(motion.target_pose, motion.start_pose, motion.t_end, noise,
                                             self.tcp_offset)
-            self.run = MoveRun(motion, self.tcp_offset.copy(), noise, planned, [on_done] if on_done else [])
+            self.run = MoveRun(motion, self.tcp_offset.copy(), noise, planned, [on_done] if on_done else [],
+                               error_from=error_from,
+                               error_to=self._static_error(motion.target_pose, motion.start_pose, motion.t_end, noise))
+            if self.truth_enabled:
+                self.run.record = self.recorder.open({
+                    "kind": motion.kind, "t_start": t / self.config.time_scale,
+                    "tcp_offset": self.tcp_offset.tolist(), "start_tcp": matrix_to_pose6(motion.start_pose).tolist(),
+                    "target_tcp": matrix_to_pose6(motion.target_pose).tolist(),
+                    "attained_flange": matrix_to_pose6(planned).tolist(),
+                    "payload": self.payload_mass})
             self.changed.notify_all()
         self.world.announce(flange_pose=planned)  # the cameras may render the end pose meanwhile
         return motion
@@ -309,6 +354,8 @@ class URController:
             if inertia is not None:
                 self.payload_inertia = np.asarray(inertia, dtype=float).reshape(6).copy()
             self._kinematic_fields = None
+            if self.structure is not None:
+                self.structure.set_payload(self.payload_mass)
             self.log(f"set_payload mass={self.payload_mass} cog={self.payload_cog.tolist()}")
             cog_now, inertia_now = self.payload_cog.tolist(), self.payload_inertia.tolist()
         self.world.truth.record("payload", time=self.world.clock(), mass=float(mass), cog=cog_now,
@@ -424,14 +471,15 @@ class URController:
             h = t - t_prev
             run = self.run
             at_rest = (run is None and not np.any(self.qd) and not np.any(self.qdd) and not np.any(self.error)
-                       and not np.any(self.error_rate))
+                       and not np.any(self.error_rate) and not self.recorder.is_open)
             if not at_rest and h > 0:
                 self._advance(run, t, h)
             now = time.monotonic()
             if (self.run is not None and self.run.phase in ("moving", "settling")
                     and now - self._last_publish >= self.config.world_publish_period):
                 self._last_publish = now
-                publish = kin.flange_from_tcp(self.actual_tcp_pose, self.tcp_offset)
+                publish = (self.true_flange.copy() if self.truth_enabled
+                           else kin.flange_from_tcp(self.actual_tcp_pose, self.tcp_offset))
             state = self.current = self._cycle_state()
         if publish is not None:
             self.world.set_flange_pose(publish, settled=False, source="robot")
@@ -444,8 +492,14 @@ class URController:
         if run is not None and run.phase == "moving":
             self._mid_move_faults(run, t)  # before sampling: a stop injected now changes the profile
             q, pose = run.motion.sample(t)
+            if run.progress is not None:
+                passed = run.motion.waypoints_passed(t)
+                if passed != run.waypoints_passed:
+                    run.waypoints_passed = passed
+                    run.progress(passed)
             if t >= run.motion.t_end:
                 run.phase = "settling"
+                self._profile_ended = run.motion.t_end
         else:
             q, pose = self.q, self.tcp_pose
         qd = (q - self.q) / h
@@ -469,6 +523,82 @@ class URController:
         actual = self.tcp_pose if not np.any(self.error) else kin.forward(self.q + self.error, self.tcp_offset)
         self.actual_tcp_speed = _twist(self.actual_tcp_pose, actual, h)
         self.actual_tcp_pose = actual
+        if self.truth_enabled:
+            deviation = np.zeros(6)
+            if actual is not self.tcp_pose:
+                deviation[:3] = actual[:3, 3] - self.tcp_pose[:3, 3]
+                deviation[3:] = matrix_to_rotvec(actual[:3, :3] @ self.tcp_pose[:3, :3].T)
+            self._advance_truth(run, t - h, t, self._encoder_deviation, deviation)
+            self._encoder_deviation = deviation
+
+    # ----------------------------------------------------------------------------- the truth
+    def _static_error(self, commanded: np.ndarray, start: np.ndarray, t_end: float,
+                      noise: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """The visit's static error (position offset, rotation vector) as ``_attained_flange`` applies it."""
+        cfg = self.config
+        approach = commanded[:3, 3] - start[:3, 3]
+        norm = float(np.linalg.norm(approach))
+        direction = approach / norm if norm > 1e-9 else np.zeros(3)
+        drift = cfg.thermal_drift_amplitude * (1.0 - np.exp(-t_end / max(cfg.thermal_drift_time_constant, 1e-9)))
+        return noise[0] + cfg.approach_bias * direction + drift * self._drift_direction, noise[1].copy()
+
+    def _static_error_now(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        run = self.run
+        if run is None or run.phase in ("done", "replaced"):
+            return self.static_error
+        u = run.motion.fraction(t)
+        return (run.error_from[0] + u * (run.error_to[0] - run.error_from[0]),
+                run.error_from[1] + u * (run.error_to[1] - run.error_from[1]))
+
+    def _advance_truth(self, run: MoveRun | None, t_prev: float, t: float, deviation_prev: np.ndarray,
+                       deviation: np.ndarray) -> None:
+        """The true tool from ``t_prev`` to ``t`` on the truth grid: commanded pose, encoder deviation
+        (interpolated between the two cycles), structural deflection and static error; recorded."""
+        n = max(1, int(math.ceil((t - t_prev) * self.config.truth_rate - 1e-9)))
+        step = (t - t_prev) / n
+        weights = np.arange(1, n + 1) / n
+        times = t_prev + (t - t_prev) * weights
+        active = run is not None and run.phase in ("moving", "settling", "finishing")
+        if active:
+            assert run is not None
+            poses = np.array([run.motion.pose_at(tau) for tau in times])
+            fraction = np.array([run.motion.fraction(tau) for tau in times])[:, None]
+            e_from, e_to = run.error_from, run.error_to
+        else:
+            poses = np.repeat(self.tcp_pose[None], n, axis=0)
+            fraction = np.ones((n, 1))
+            e_from = e_to = self.static_error
+        positions, rotations = poses[:, :3, 3], poses[:, :3, :3]
+        dev = deviation_prev + weights[:, None] * (deviation - deviation_prev)
+        encoder_rotation = rotvec_to_matrix_batch(dev[:, 3:]) @ rotations
+        encoder_position = positions + dev[:, :3]
+        if self.structure is not None:
+            velocity, acceleration = self._grid.derivatives(positions, rotations, step)
+            deflection = self.structure.advance(self.structure.forcing(velocity, acceleration), step)
+        else:
+            deflection = np.zeros((n, 6))
+        error_position = e_from[0] + fraction * (e_to[0] - e_from[0])
+        error_rotation = e_from[1] + fraction * (e_to[1] - e_from[1])
+        true_rotation = (rotvec_to_matrix_batch(deflection[:, 3:]) @ rotvec_to_matrix_batch(error_rotation)
+                         @ encoder_rotation)
+        true_position = encoder_position + error_position + deflection[:, :3]
+        offset = pose6_to_matrix(self.tcp_offset)
+        flange_rotation = true_rotation @ offset[:3, :3].T
+        flange_position = true_position - flange_rotation @ offset[:3, 3]
+        self.true_flange = make_transform(flange_rotation[-1], flange_position[-1])
+        rows = np.column_stack([
+            times / self.config.time_scale,
+            flange_position, matrix_to_quaternion_batch(flange_rotation),
+            positions, matrix_to_quaternion_batch(rotations),
+            encoder_position, matrix_to_quaternion_batch(encoder_rotation)])
+        self.recorder.append(rows)
+        if (run is None and not np.any(self.error) and not np.any(self.error_rate) and self.recorder.is_open
+                and (self.structure is None or self.structure.amplitude() < self.config.truth_tail_tolerance
+                     or t - self._profile_ended > self.config.truth_tail_max)):
+            self.recorder.close()
+            if self.structure is not None:  # below a nanometre: the rest is the attained pose
+                self.structure.deflection = np.zeros(6)
+                self.structure.rate = np.zeros(6)
 
     def _mid_move_faults(self, run: MoveRun, t: float) -> bool:
         """Fire an armed mid-move fault once the path has crossed its fraction ``at``; True if one fired."""
@@ -529,6 +659,7 @@ class URController:
                 "settling_time": run.settled_at - motion.t_end,
                 "end_timestamp": run.end_cycle * self.period,  # RTDE timestamp of the first package at rest
                 "publish_wait": published_in,  # wall s the settled pose took to reach every subscriber
+                "move": run.record,  # its trajectory record
             })
             del self.visits[:-10_000]
         # The final pose has been streamed since ``end_cycle``; give every client a cycle or two to
@@ -539,10 +670,21 @@ class URController:
             if self.run is run:
                 self.run = None
                 self._steady_since = self.t_sim
+                self.static_error = self._static_error(commanded, motion.start_pose, motion.t_end, run.noise)
             run.phase = "done"
             callbacks, run.callbacks = run.callbacks, []
             for callback in callbacks:
                 callback(motion)
+            # The next cycle's package is the first that can carry "done" (the registers written now).
+            done_timestamp = (self.cycle + 1) * self.period
+            self.visits[-1]["done_timestamp"] = done_timestamp
+            if self.recorder.is_open and self.recorder.current is not None and \
+                    self.recorder.current["move"] == run.record:
+                self.recorder.note(done_timestamp=done_timestamp,
+                                   profile_end=motion.t_end / self.config.time_scale,
+                                   servo_settled=run.settled_at / self.config.time_scale,
+                                   end_timestamp=run.end_cycle * self.period,
+                                   attained_flange=matrix_to_pose6(flange).tolist(), stopped=motion.stopped)
             run.done.set()
             self.changed.notify_all()
 

@@ -1,5 +1,6 @@
-"""Trapezoidal point-to-point motions in simulated time: ``movel`` (Cartesian line + slerp) and
-``movej`` (synchronised joint interpolation), with a deceleration stop that can cut any motion short.
+"""Trapezoidal motions in simulated time: ``movel`` (Cartesian line + slerp), ``movej`` (synchronised
+joint interpolation) and paths (``movel`` waypoints with blends and ``movec`` arcs, ``_path``), with a
+deceleration stop that can cut any motion short.
 
 A motion is a path ``x(s)``, ``s ∈ [0, L]``, driven by a 1-D velocity profile ``s(t)``. ``L`` is the
 TCP travel in metres for ``movel`` (or the rotation angle in radians when the TCP only turns, as a UR
@@ -16,6 +17,7 @@ import numpy as np
 
 from sim_devices._transforms import make_transform, matrix_to_rotvec, rotvec_to_matrix
 from sim_devices.ur import _kinematics as kin
+from sim_devices.ur._path import PathPlan
 
 
 @dataclass
@@ -70,16 +72,33 @@ class Profile:
 
 
 class Motion:
-    """A running move. ``sample(t)`` gives the commanded joints and TCP pose at simulated time ``t``."""
+    """A running move. ``sample(t)`` gives the commanded joints and TCP pose at simulated time ``t``;
+    ``pose_at(t)`` the commanded TCP pose alone (no inverse kinematics)."""
 
-    def __init__(self, kind: str, t0: float, q_start: np.ndarray, tcp_offset: np.ndarray, *, speed: float,
-                 accel: float, target_q: np.ndarray | None = None, target_pose: np.ndarray | None = None) -> None:
-        self.kind = kind  # "linear" or "joint"
+    def __init__(self, kind: str, t0: float, q_start: np.ndarray, tcp_offset: np.ndarray, *, speed: float = 0.0,
+                 accel: float = 0.0, target_q: np.ndarray | None = None, target_pose: np.ndarray | None = None,
+                 plan: PathPlan | None = None) -> None:
+        self.kind = kind  # "linear", "joint" or "path"
         self.tcp_offset = np.asarray(tcp_offset, dtype=float).copy()
         self.q_start = np.asarray(q_start, dtype=float).copy()
         self.start_pose = kin.forward(self.q_start, self.tcp_offset)
         self.stopped = False
         self._q_last = self.q_start.copy()
+        self.plan = plan
+        self.profiles: list[Profile] = []
+        if kind == "path":
+            assert plan is not None
+            self.target_pose = plan.end_pose.copy()
+            self.target_q = kin.inverse(self.target_pose, self.q_start, self.tcp_offset)
+            self.length = plan.length
+            start = t0
+            for run in plan.runs:
+                profile = Profile.rest_to_rest(start, run.length, run.speed, run.acceleration)
+                self.profiles.append(profile)
+                start = profile.t_end
+            self._offsets = np.concatenate([[0.0], np.cumsum([run.length for run in plan.runs])])
+            self.profile = self.profiles[-1]
+            return
         if kind == "joint":
             self.target_q = np.asarray(target_q, dtype=float).copy()
             self.target_pose = kin.forward(self.target_q, self.tcp_offset)
@@ -98,13 +117,33 @@ class Motion:
     def t_end(self) -> float:
         return self.profile.t_end
 
+    def _path_state(self, t: float) -> tuple[int, float, float]:
+        """(run, arc length in it, path speed) at ``t`` for a path."""
+        for index, profile in enumerate(self.profiles):
+            if t < profile.t_end or index == len(self.profiles) - 1:
+                s, v = profile.at(t)
+                return index, s, v
+        raise AssertionError("unreachable")
+
     def fraction(self, t: float) -> float:
+        if self.kind == "path":
+            run, s, _ = self._path_state(t)
+            return 1.0 if self.length <= 0 else min((self._offsets[run] + s) / self.length, 1.0)
         s, _ = self.profile.at(t)
         return 1.0 if self.length <= 0 else min(s / self.length, 1.0)
 
+    def waypoints_passed(self, t: float) -> int:
+        """How many of a path's waypoints the tool has passed at ``t`` (0 for other motions)."""
+        if self.kind != "path":
+            return 0
+        assert self.plan is not None
+        run, s, _ = self._path_state(t)
+        earlier = sum(len(r.waypoint_s) - 1 for r in self.plan.runs[:run])
+        return earlier + sum(1 for w in self.plan.runs[run].waypoint_s[1:] if w <= s)
+
     def time_at_fraction(self, fraction: float) -> float:
         """Simulated time at which the path reaches ``fraction`` (bisection on the monotonic profile)."""
-        lo, hi = self.profile.t0, self.profile.t_end
+        lo, hi = (self.profiles[0] if self.profiles else self.profile).t0, self.profile.t_end
         for _ in range(50):
             mid = 0.5 * (lo + hi)
             if self.fraction(mid) < fraction:
@@ -114,13 +153,35 @@ class Motion:
         return hi
 
     def speed(self, t: float) -> float:
+        if self.kind == "path":
+            return self._path_state(t)[2]
         return self.profile.at(t)[1]
 
     def stop(self, t: float, decel: float) -> None:
         """Cut the motion short: decelerate from the current path speed at ``decel``."""
+        if self.kind == "path":
+            run, s, v = self._path_state(t)
+            self.profiles = self.profiles[:run] + [Profile.stopping(t, s, v, decel)]
+            self.profile = self.profiles[-1]
+            self.stopped = True
+            return
         s, v = self.profile.at(t)
         self.profile = Profile.stopping(t, s, v, decel)
         self.stopped = True
+
+    def pose_at(self, t: float) -> np.ndarray:
+        """The commanded TCP pose (4×4) at ``t``, without solving for the joints."""
+        if self.kind == "path":
+            assert self.plan is not None
+            run, s, _ = self._path_state(t)
+            return self.plan.pose(run, s)
+        u = self.fraction(t)
+        if self.kind == "joint":
+            return kin.forward(self.q_start + u * (self.target_q - self.q_start), self.tcp_offset)
+        if u >= 1.0:
+            return self.target_pose.copy()
+        rotation = rotvec_to_matrix(u * self._drot) @ self.start_pose[:3, :3]
+        return make_transform(rotation, self.start_pose[:3, 3] + u * self._dp)
 
     def sample(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """(joints, TCP pose 4×4) commanded at ``t``."""
@@ -128,6 +189,13 @@ class Motion:
         if self.kind == "joint":
             q = self.q_start + u * (self.target_q - self.q_start)
             return q, kin.forward(q, self.tcp_offset)
+        if self.kind == "path":
+            pose = self.pose_at(t)
+            if u >= 1.0 and not self.stopped:
+                self._q_last = self.target_q.copy()
+                return self._q_last, self.target_pose.copy()
+            self._q_last = kin.inverse(pose, self._q_last, self.tcp_offset, tolerance=1e-11)
+            return self._q_last, pose
         if u >= 1.0:
             self._q_last = self.target_q.copy()
             return self._q_last, self.target_pose.copy()

@@ -24,6 +24,7 @@ from sim_devices.faults import FaultKind
 from sim_devices.ur import _kinematics as kin
 from sim_devices.ur._controller import RUNTIME_STOPPED, URController
 from sim_devices.ur._motion import Motion
+from sim_devices.ur._urscript import ScriptError, function_body, path_moves, plan_path
 
 REALTIME_COMMANDS = {6, 9, 10, 11, 24, 25, 26, 27, 38, 58, 66, 67, 68, 69, 70, 71}
 COMMAND_NAMES = {
@@ -31,7 +32,7 @@ COMMAND_NAMES = {
     30: "getInverseKinematics(args)",
     31: "triggerProtectiveStop", 33: "stopL", 34: "stopJ", 36: "isPoseWithinSafetyLimits",
     37: "isJointsWithinSafetyLimits", 39: "poseTrans", 40: "getTCPOffset", 43: "getForwardKinematics()",
-    44: "getForwardKinematics(args)", 46: "getInverseKinematics()", 47: "isSteady",
+    44: "getForwardKinematics(args)", 45: "movePath", 46: "getInverseKinematics()", 47: "isSteady",
     58: "getActualToolFlangePose", 60: "getInverseKinematicsHasSolution()",
     61: "getInverseKinematicsHasSolution(args)", 65: "setTargetPayload", 255: "stopScript",
 }
@@ -56,19 +57,17 @@ def recognise_control_script(text: str) -> tuple[int, int] | None:
     return register_offset(text, "int"), register_offset(text, "float")
 
 
-class ScriptError(RuntimeError):
-    """What makes a real URScript halt with a runtime error (e.g. no IK solution)."""
-
-
 class ControlScript:
     """One run of the control script on the twin controller."""
 
     def __init__(self, controller: URController, int_offset: int = 0, float_offset: int = 0,
-                 name: str = "rtde_control") -> None:
+                 name: str = "rtde_control", program: str = "") -> None:
         self.c = controller
         self.int_offset = int_offset
         self.float_offset = float_offset
         self.name = name
+        # ur_rtde injects a path (moveL(path), movePath) into exec_move_path() before uploading.
+        self.path_lines = function_body(program, "exec_move_path") or []
         self.alive = True
         self._async_wr_count = 0
         self._async_op_id = 0
@@ -185,6 +184,8 @@ class ControlScript:
                 c.protective_stop("protective stop requested by the client")
             elif cmd in (33, 34):
                 self._stop(cmd)
+            elif cmd == 45:
+                self._move_path()
             elif cmd in (36, 37):
                 self._out_int(1, 1)
             elif cmd == 39:
@@ -270,6 +271,48 @@ class ControlScript:
         else:
             motion = c.start_motion(factory)
             c.wait_motion(motion, lambda: self.alive)
+
+    def _move_path(self) -> None:
+        """Command 45: run the path injected into ``exec_move_path()`` (``signal_async_progress(i)``
+        before the i-th move, as the injected code does), in the move thread when asynchronous."""
+        c = self.c
+        entries = path_moves(self.path_lines)
+        moves = [move for _, move in entries if move is not None]
+        if not moves:
+            raise ScriptError("move_path: the uploaded script holds no path")
+        asynchronous = self._in_int(1) == 1
+        self._stop_async_move()
+        c.log(f"move_path {'async ' if asynchronous else ''}with {len(moves)} moves")
+
+        def progress(passed: int, script=self) -> None:  # signal_async_progress(passed), in the cycle thread
+            if script.alive and passed < len(moves):
+                script._write_async_progress(passed)
+
+        if asynchronous:
+            with c.lock:
+                self._write_async_progress(0)  # signal_async_operation_started()
+                self._write_async_progress(0)  # the path's own signal_async_progress(0)
+
+                def finished(motion, script=self):
+                    with script.c.lock:
+                        if script.alive and script._async_motion is motion:
+                            script._async_motion = None
+                            script._write_async_progress(-1)
+
+                self._async_motion = self._start_path(moves, finished, progress)
+        else:
+            self._write_async_progress(0)
+            motion = self._start_path(moves, None, progress)
+            c.wait_motion(motion, lambda: self.alive)
+
+    def _start_path(self, moves, on_done, progress) -> Motion:
+        c = self.c
+        plan = plan_path(c, moves)
+        motion = c.start_motion(lambda t, q, tcp: Motion("path", t, q, tcp, plan=plan), on_done)
+        with c.lock:
+            if c.run is not None and c.run.motion is motion:
+                c.run.progress = progress
+        return motion
 
     def _stop(self, cmd: int) -> None:
         """``exec_stopl_stopj``: decelerate; synchronously, or in a stop 'thread' when async."""

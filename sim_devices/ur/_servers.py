@@ -25,6 +25,7 @@ from sim_devices.ur._controller import (
 )
 from sim_devices.ur._fields import INPUT_FIELDS, OUTPUT_FIELDS, Recipe, parse_names
 from sim_devices.ur._script import ControlScript, recognise_control_script
+from sim_devices.ur._urscript import CustomScript
 
 RTDE_PORT, DASHBOARD_PORT, SCRIPT_PORT = 30004, 29999, 30003
 V, v, O, I, S, P, U, M = 86, 118, 79, 73, 83, 80, 85, 77  # RTDE package types
@@ -476,11 +477,16 @@ class ScriptHandler:
     def _run(self, program: str) -> None:
         self.programs_received += 1
         offsets = recognise_control_script(program)
-        if offsets is None:
+        custom = CustomScript.from_program(self.c, program) if offsets is None else None
+        if offsets is None and custom is None:
             header = program.split("\n", 1)[0]
             self.c.log(f"script port: program {header!r} ({len(program)} chars) is not emulated; ignored")
             return
         if self.c.safety_bits & (SAFETY_BIT_PROTECTIVE | SAFETY_BIT_ESTOP):
-            self.c.log("script port: control script refused while the robot is in a safety stop")
+            self.c.log("script port: program refused while the robot is in a safety stop")
             return
-        ControlScript(self.c, *offsets).start()
+        if custom is not None:
+            custom.start()
+        else:
+            assert offsets is not None
+            ControlScript(self.c, *offsets, program=program).start()
