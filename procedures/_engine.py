@@ -215,7 +215,7 @@ class RunEngine:
                 self.compensators = compensators_in_force(self.station.model, self.science)
             context = StationStepContext(self.station, self.params, self.science, compensators=self.compensators,
                                          wait=self._wait, check_abort=self._check_abort, log=self._log,
-                                         run_dir=self.store.run_dir(self.run_id))
+                                         run_dir=self.store.run_dir(self.run_id), emit=self._emit)
             reason = None
             if resuming:
                 reason = f"resumed after {len(measured)} measured samples" + (
@@ -276,7 +276,8 @@ class RunEngine:
     def _analyse(self) -> None:
         context = AnalysisContext(run_id=self.run_id, station=self.station.model, science=self.science,
                                   compensators=self.compensators, run_dir=self.store.run_dir(self.run_id),
-                                  truth=_truth_log(self.station.model))
+                                  truth=_truth_log(self.station.model),
+                                  streams=lambda steps=None: self.store.streams(self.run_id, steps))
         analysis = self.kind.analyse(self.store.samples(self.run_id), self.params, context)
         if analysis.calibration_record_id is not None:
             self.store.update_run(self.run_id, calibration_record_id=analysis.calibration_record_id)
@@ -355,7 +356,7 @@ class RunEngine:
             self.run_id, step.index, step.key, step.phase, label=step.label, ok=pose.ok, error=pose.error,
             commanded=commanded, solved=solved, corrected=pose.corrected, crosses=pose.crosses,
             reference=reading.reference, meta=step.meta, frames=pose.frames, t_start=t_start,
-            t_measured=pose.t_measured,
+            t_measured=pose.t_measured, stream=None if reading.stream is None else reading.stream.to_stored(),
         )
         # Committed: from here on nothing can lose this sample.
         if repeat:
