@@ -21,7 +21,7 @@ from __future__ import annotations
 import threading
 import time
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -273,11 +273,14 @@ class RunEngine:
         problems = self.station.safe_state() if stop_devices else []
         self._set_state(state, reason=reason + ("; " + "; ".join(problems) if problems else ""), hook=hook)
 
+    def _streams(self, steps: Sequence[int] | None = None) -> dict[int, Any]:
+        return dict(self.store.streams(self.run_id, steps))
+
     def _analyse(self) -> None:
         context = AnalysisContext(run_id=self.run_id, station=self.station.model, science=self.science,
                                   compensators=self.compensators, run_dir=self.store.run_dir(self.run_id),
                                   truth=_truth_log(self.station.model),
-                                  streams=lambda steps=None: self.store.streams(self.run_id, steps))
+                                  streams=self._streams)
         analysis = self.kind.analyse(self.store.samples(self.run_id), self.params, context)
         if analysis.calibration_record_id is not None:
             self.store.update_run(self.run_id, calibration_record_id=analysis.calibration_record_id)

@@ -98,7 +98,8 @@ def stabilisation_lines(results: Mapping[str, Any]) -> list[str]:
     out = [f"band {fmt(results.get('band'), UM)} µm ({results.get('band_source')})"]
     for s in results.get("settings") or []:
         st, os_ = s["stabilisation_time"], s["overshoot"]
-        out.append(f"{s['point']} {s['speed_percent']:g} %: t_s {_with_u(st.get('mean'), st.get('expanded_uncertainty'), MS)}"
+        t_s = _with_u(st.get("mean"), st.get("expanded_uncertainty"), MS)
+        out.append(f"{s['point']} {s['speed_percent']:g} %: t_s {t_s}"
                    f" ms (max {fmt(st.get('max'), MS)}), overshoot "
                    f"{_with_u(os_.get('mean'), os_.get('expanded_uncertainty'), UM)} µm, n {s['cycles']}")
     return out
@@ -117,7 +118,8 @@ def path_html(results: Mapping[str, Any]) -> str:
             if "error" in f or not f:
                 rows.append([speed, escape(name), escape(str(f.get("error", "not measured")))] + ["—"] * 5)
                 continue
-            rows.append([speed, escape(name), _with_u(f.get("at_p"), f.get("u_at_p"), UM), _true(f.get("true"), "at_p", UM),
+            rows.append([speed, escape(name), _with_u(f.get("at_p"), f.get("u_at_p"), UM),
+                         _true(f.get("true"), "at_p", UM),
                          fmt(f.get("rt_p"), UM), _true(f.get("true"), "rt_p", UM),
                          " / ".join(fmt(f.get(k), 206264.8, 1) for k in ("at_a", "at_b", "at_c")),
                          " / ".join(fmt(f.get(k), 206264.8, 1) for k in ("rt_a", "rt_b", "rt_c"))])
@@ -140,10 +142,10 @@ def path_html(results: Mapping[str, Any]) -> str:
                                   fmt(v.get("rv"), 100.0), _with_u(v.get("fv"), v.get("u_fv"), 1e3),
                                   _true(v.get("true"), "fv", 1e3)])
     transform = results.get("transform") or {}
+    fitted = f"fitted on {transform.get('points')} settled poses" if transform.get("fitted") else "not fitted"
     return ("<section class=part id=results><h2>Results: path characteristics (ISO 9283 8.2, 8.3, 8.5, 8.6)</h2>"
             f"<p>The tool point, in the instrument's frame (robot↔M transform "
-            f"{'fitted on ' + str(transform.get('points')) + ' settled poses' if transform.get('fitted') else 'not fitted'}"
-            ").</p>"
+            f"{fitted}).</p>"
             + _table(["speed %", "path", "AT_p µm ± U", "AT_p true µm", "RT_p µm", "RT_p true µm", "AT_a/b/c ″",
                       "RT_a/b/c ″"], rows)
             + "<h3>Cornering at P3 (8.5)</h3>"
@@ -158,15 +160,17 @@ def path_lines(results: Mapping[str, Any]) -> list[str]:
     out = []
     for s in results.get("settings") or []:
         parts = []
-        for key, name in PATH_PARTS:
+        for key, _ in PATH_PARTS:
             f = s.get(key) or {}
             if f and "error" not in f:
-                parts.append(f"{key} AT_p {_with_u(f.get('at_p'), f.get('u_at_p'), UM)} µm RT_p {fmt(f.get('rt_p'), UM)} µm")
+                at_p = _with_u(f.get("at_p"), f.get("u_at_p"), UM)
+                parts.append(f"{key} AT_p {at_p} µm RT_p {fmt(f.get('rt_p'), UM)} µm")
         c, v = s.get("corner") or {}, s.get("velocity") or {}
         if c and "error" not in c:
             parts.append(f"CR {fmt(c.get('cr'), UM)} µm CO {fmt(c.get('co'), UM)} µm")
         if v and "error" not in v:
-            parts.append(f"AV {fmt(v.get('av'), 100.0)} % RV {fmt(v.get('rv'), 100.0)} % FV {fmt(v.get('fv'), 1e3)} mm/s")
+            parts.append(f"AV {fmt(v.get('av'), 100.0)} % RV {fmt(v.get('rv'), 100.0)} % "
+                         f"FV {fmt(v.get('fv'), 1e3)} mm/s")
         out.append(f"{s['speed_percent']:g} %: " + "; ".join(parts))
     return out
 

@@ -68,6 +68,15 @@ def noise_sigma(positions: np.ndarray) -> float:
     return float(np.sqrt(np.mean(mad**2)) / math.sqrt(6.0))
 
 
+def rest_noise(record: StreamRecord, tool: np.ndarray, settle_s: float = 0.1) -> float:
+    """σ of the stream's noise from the samples after the done signal (+ ``settle_s``): the robot
+    at rest there, so the second differences are noise (a moving path's are its curvature)."""
+    signal = record.meta.get("t_signal")
+    if signal is None:
+        return float("nan")
+    return noise_sigma(tool[record.t >= float(signal) + settle_s, :3])
+
+
 def _finite(value: Any) -> float | None:
     return None if value is None or not math.isfinite(float(value)) else float(value)
 
@@ -117,7 +126,8 @@ def stabilisation_move(record: StreamRecord, opr_to_tool: np.ndarray, band: floa
         slope = abs(result.distance[k] - result.distance[k - 1]) / max(record.t[k] - record.t[k - 1], 1e-9)
         u_time = 2.0 * math.sqrt(period**2 / 12.0 + (sigma / max(slope, 1e-9)) ** 2)
     move: dict[str, Any] = {
-        "t_signal": signal, "stabilisation_time": _finite(result.stabilisation_time), "overshoot": float(result.overshoot),
+        "t_signal": signal, "stabilisation_time": _finite(result.stabilisation_time),
+        "overshoot": float(result.overshoot),
         "u_stabilisation_time": u_time, "u_overshoot": u_overshoot if math.isfinite(u_overshoot) else None,
         "settled_time": _finite(result.settled_time), "attained": result.attained.tolist(), "noise_sigma": sigma,
         "poses": len(record), "dropped": record.dropped, "frame_period": period,
@@ -201,7 +211,8 @@ def fitted_frame(ctx: AnalysisContext, samples: Sequence[Sample], truths: Mappin
                             "rotation": rotation.tolist(), "translation": translation.tolist()}
 
 
-def commanded_tool(ctx: AnalysisContext, fitted: np.ndarray, point_in_m: Sequence[float]) -> np.ndarray:
+def commanded_tool(ctx: AnalysisContext, fitted: np.ndarray, point_in_m: Sequence[float] | np.ndarray
+                   ) -> np.ndarray:
     """(6,) the commanded tool pose for an OPR point in nominal M, in the measured frame."""
     reference = ctx.station.frames.reference_tcp_pose
     from procedures.kinds._dynamic_plan import tcp_at

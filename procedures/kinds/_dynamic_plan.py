@@ -25,6 +25,7 @@ from procedures.kinds._protocol import PoseReading, Reading, Step, StepContext
 from procedures.kinds._setups import OprOnRobot
 
 CYCLE_ORDER = ("P1", "P5", "P4", "P3", "P2")  # ISO 9283's cycle; each pose is approached from the one before it
+Point = Sequence[float] | np.ndarray  # a position in M (m)
 MIN_SAMPLES = 10  # a move with fewer poses than this is a failed sample (measured again on resume)
 
 
@@ -69,7 +70,7 @@ def cube_point(params: DynamicParameters, label: str) -> np.ndarray:
     return np.asarray(cube.points[label], dtype=float)
 
 
-def tcp_at(station: StationFile, point_in_m: Sequence[float]) -> list[float]:
+def tcp_at(station: StationFile, point_in_m: Point) -> list[float]:
     """The commanded TCP pose (base frame) that puts the OPR at ``point_in_m`` at the reference orientation."""
     return [float(v) for v in translated_in_frame(station.frames.reference_tcp_pose, point_in_m)]
 
@@ -88,9 +89,9 @@ def motion_of(station: StationFile, params: DynamicParameters, speed_percent: fl
     return float(min(speed, station.envelope.max_speed)), float(acceleration)
 
 
-def robot_step(index: int, key: str, phase: str, station: StationFile, target_in_m: Sequence[float],
-               start_in_m: Sequence[float] | None, label: str, meta: dict[str, Any],
-               waypoints_in_m: Sequence[Sequence[float]] = ()) -> Step:
+def robot_step(index: int, key: str, phase: str, station: StationFile, target_in_m: Point,
+               start_in_m: Point | None, label: str, meta: dict[str, Any],
+               waypoints_in_m: Sequence[Point] = ()) -> Step:
     """A step whose measured motion ends at ``target_in_m``, starting from ``start_in_m`` (checked by
     the dry run as ``via``, with every waypoint)."""
     via = tuple(tcp_at(station, p) for p in ([start_in_m] if start_in_m is not None else []) + list(waypoints_in_m))

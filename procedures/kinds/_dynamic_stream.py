@@ -247,7 +247,7 @@ def seconds_of(record: StreamRecord) -> Iterable[int]:
     """The last sample of every streamed second (indices into the record), for the live events."""
     if not len(record):
         return []
-    second = np.floor((record.t - record.t[0])).astype(int)
+    second = np.floor(record.t - record.t[0]).astype(int)
     last = np.flatnonzero(np.append(np.diff(second) != 0, True))
     return [int(i) for i in last]
 

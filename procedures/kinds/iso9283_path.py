@@ -27,8 +27,8 @@ from procedures.kinds._dynamic_analysis import (
     fitted_frame,
     linear_command,
     middle_of_leg,
-    noise_sigma,
     path_figures,
+    rest_noise,
     streams_of,
     tool_poses,
     true_tool_path,
@@ -183,7 +183,8 @@ def analyse_path(samples: Sequence[Sample], params: PathParameters, ctx: Analysi
             true_paths = [true_tool_path(records[s.step_index], truth_for(truths, records[s.step_index]), mirror,
                                          opr_to_tool) for s in mine]
             true = [p for p in true_paths if p is not None] if all(p is not None for p in true_paths) else None
-            sigma = float(np.nanmedian([noise_sigma(p[:, :3]) for p in measured])) if measured else float("nan")
+            noise = [rest_noise(records[s.step_index], p) for s, p in zip(mine, measured)]
+            sigma = float(np.nanmedian(noise)) if noise and np.any(np.isfinite(noise)) else float("nan")
             entry[f"{segment}_cycles"] = len(mine)
             entry[f"{segment}_noise_sigma"] = sigma
             if mine:
