@@ -616,8 +616,10 @@ def main(argv: list[str]) -> int:
     parser.add_argument("procedure")
     parser.add_argument("--move-delay", type=float, default=0.0)
     parser.add_argument("--resume", default=None)
+    parser.add_argument("--timed", action="store_true", help="moves take time and ring down (the dynamic kinds)")
     args = parser.parse_args(argv)
     cell = FakeCell(seed=3, move_delay=args.move_delay)
+    cell.timed_moves = args.timed
     with open_engine(args.runs_dir, procedure=args.procedure, station=args.station, run_id=args.resume,
                      science=FakeScience(cell), devices=cell.devices(), operator=cell.operator) as engine:
         print(engine.run_id, flush=True)

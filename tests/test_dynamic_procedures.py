@@ -4,6 +4,11 @@ streams, resume, the live events — against the fake cell's known motion (``Fak
 from __future__ import annotations
 
 import json
+import os
+import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -164,3 +169,71 @@ def test_path_run_gives_every_figure_and_the_export_carries_the_streams(tmp_path
     assert main(["report", run["id"][:8], "--runs-dir", str(tmp_path / "runs")]) == 0
     html = (tmp_path / "runs" / run["id"] / "report.html").read_text(encoding="utf-8")
     assert "AT_p" in html and "CR" in html and "<svg" in html
+
+
+@pytest.fixture
+def child_processes():
+    """Every child a test starts is killed (by pid) and reaped at the end, whatever happened."""
+    started: list[subprocess.Popen] = []
+    yield started
+    for child in started:
+        if child.poll() is None:
+            os.kill(child.pid, signal.SIGKILL)
+        child.wait(30)
+
+
+def test_kill_9_mid_run_then_resume_keeps_every_committed_move_once(tmp_path, child_processes):
+    station = write_station(tmp_path / "station.yaml")
+    procedure = _procedure(tmp_path, "iso9283_stabilisation", cycles=4, speeds_percent=[100], window_s=0.4)
+    runs = tmp_path / "runs"
+    root = Path(__file__).resolve().parents[1]
+    child = subprocess.Popen([sys.executable, "-m", "tests.fakes", str(runs), str(station), str(procedure), "--timed"],
+                             cwd=root, stdout=subprocess.PIPE, text=True)
+    child_processes.append(child)
+    run_id = child.stdout.readline().strip() if child.stdout else ""
+    deadline = time.monotonic() + 60
+    before: dict = {}
+    while len(before) < 2:
+        assert time.monotonic() < deadline, "the child committed no moves in 60 s"
+        time.sleep(0.05)
+        with RunStore(runs) as store:
+            before = store.streams(run_id)
+    os.kill(child.pid, signal.SIGKILL)
+    child.wait(30)
+    with RunStore(runs) as store:
+        before = store.streams(run_id)
+        assert store.get_run(run_id)["state"] == "RUNNING" and 2 <= len(before) < 4
+        assert sorted(before) == sorted(s.step_index for s in store.samples(run_id))  # a stream only with its sample
+    resumed = subprocess.run([sys.executable, "-m", "tests.fakes", str(runs), str(station), str(procedure),
+                              "--timed", "--resume", run_id], cwd=root, capture_output=True, text=True, timeout=120)
+    assert resumed.stdout.split()[-1] == "FINISHED", resumed.stderr[-2000:]
+    with RunStore(runs) as store:
+        after = store.streams(run_id)
+        samples = store.samples(run_id)
+        events = store.events(run_id)
+    assert sorted(after) == [0, 1, 2, 3] and [s.step_index for s in samples] == [0, 1, 2, 3]
+    assert all(after[k].data == before[k].data for k in before)  # committed moves untouched
+    assert "resumed after" in " ".join(str(e["message"]) for e in events)
+
+
+def test_streams_round_trip_on_postgresql(tmp_path):
+    from tests._postgres import postgres_server
+
+    with postgres_server() as server:
+        url = server.new_database()
+        cell = _cell()
+        procedure = _procedure(tmp_path, "iso9283_stabilisation", cycles=2, speeds_percent=[100], window_s=0.3)
+        with _run(tmp_path, cell, procedure, store=url) as engine:
+            assert engine.execute() == RunState.FINISHED
+            run_id = engine.run_id
+        assert not (tmp_path / "runs" / "runs.sqlite").exists()
+        with RunStore(tmp_path / "runs", url=url) as store:
+            streams = store.streams(run_id)
+            version = store._db.rows("SELECT MAX(version) AS v FROM schema_version")[0]["v"]
+            results = store.get_run(run_id)["results"]
+        assert version == 5 and sorted(streams) == [0, 1]
+        for step, stored in streams.items():
+            record = StreamRecord.from_stored(stored)
+            assert len(record) > 50 and record.meta["rate_hz"] == 200.0
+            move = next(m for m in results["moves"] if m["step"] == step)
+            assert move["poses"] == len(record)

@@ -88,7 +88,7 @@ def test_stabilisation_against_the_twins_truth(cell, tmp_path):
 
 def test_path_accuracy_against_the_twins_truth(cell, tmp_path):
     run = _run(tmp_path, _procedure(tmp_path, "iso9283_path", speeds_percent=[50], hold_s=0.1,
-                                    rate_hz=100.0, circle_radius_mm=10.0,
+                                    rate_hz=50.0, circle_radius_mm=10.0,
                                     settle_time_s=0.2, frames_per_pose=1), cell.station_path)
     setting = run["results"]["settings"][0]
     for part in ("leg_1", "leg_2", "circle"):
