@@ -436,13 +436,17 @@ class RunStore:
 
     def streams(self, run_id: str, steps: Iterable[int] | None = None) -> dict[int, StoredStream]:
         """The stored pose streams of a run by step index (of ``steps`` only, when given)."""
-        wanted = None if steps is None else {int(s) for s in steps}
+        sql = "SELECT step_index, format, samples, columns, meta, data FROM streams WHERE run_id = ?"
+        params: list[Any] = [run_id]
+        if steps is not None:
+            wanted = sorted({int(s) for s in steps})
+            if not wanted:
+                return {}
+            sql += f" AND step_index IN ({', '.join('?' * len(wanted))})"
+            params += wanted
         out = {}
-        for row in self._db.rows("SELECT step_index, format, samples, columns, meta, data FROM streams "
-                                 "WHERE run_id = ? ORDER BY step_index", (run_id,)):
+        for row in self._db.rows(sql + " ORDER BY step_index", params):
             index = int(row["step_index"])
-            if wanted is not None and index not in wanted:
-                continue
             out[index] = StoredStream(format=row["format"], samples=int(row["samples"]),
                                       columns=json.loads(row["columns"]), data=bytes(row["data"]),
                                       meta=json.loads(row["meta"]) if row["meta"] else None)

@@ -42,6 +42,10 @@ def cell(tmp_path_factory):
         yield running
 
 
+def _ms(seconds: float | None) -> str:
+    return "never" if seconds is None else f"{seconds * 1e3:.2f}"
+
+
 def _procedure(tmp_path: Path, kind: str, **parameters) -> Path:
     path = tmp_path / f"{kind}.yaml"
     path.write_text(yaml.safe_dump({"procedure": kind, "parameters": {
@@ -73,8 +77,8 @@ def test_stabilisation_against_the_twins_truth(cell, tmp_path):
     assert any(m["true"]["overshoot"] > 3e-6 and m["true"]["stabilisation_time"] > period for m in results["moves"])
     for move in results["moves"]:
         true = move["true"]
-        print(f"{move['key']}: t_s {move['stabilisation_time'] * 1e3:.2f} ms (true {true['stabilisation_time'] * 1e3:.2f}"
-              f", dense {true['dense']['stabilisation_time'] * 1e3:.2f}), overshoot {move['overshoot'] * 1e6:.2f} µm "
+        print(f"{move['key']}: t_s {_ms(move['stabilisation_time'])} ms (true {_ms(true['stabilisation_time'])}, "
+              f"dense {_ms(true['dense']['stabilisation_time'])}), overshoot {move['overshoot'] * 1e6:.2f} µm "
               f"(true {true['overshoot'] * 1e6:.2f}, dense {true['dense']['overshoot'] * 1e6:.2f}), "
               f"{move['poses']} poses, {move['dropped']} dropped")
         assert abs(move["stabilisation_time"] - true["stabilisation_time"]) <= period
