@@ -287,7 +287,7 @@ def create_app(settings: WebSettings, *, reader: StoreReader | None = None) -> F
             if frames is not None and frames["step"] != frames_step:
                 frames_step = frames["step"]
                 yield _sse("frames", _jsonable(frames))
-            motion = await run_in_threadpool(reader.latest_stream, run_id)
+            motion = await run_in_threadpool(reader.latest_stream, snap["run"]["id"])
             if motion is not None and motion["step"] != stream_step:
                 stream_step = motion["step"]
                 yield _sse("posestream", _jsonable(motion))
