@@ -186,8 +186,11 @@ def path_accuracy(bench: Bench, cycles: int, speed: float, blend: float, circle_
         true_paths.append(truth[:, :3, 3])
     c0, c1, c2 = bench.to_m(np.array([p0[:3], corner[:3], end[:3]]))
     results = {}
+    # The calculation points lie on the straight part of each leg: the blend takes the last (first)
+    # ``blend`` of it, and the corner has its own figures (CR, CO).
     for name, (a, b) in {"leg 1": (c0, c1), "leg 2": (c1, c2)}.items():
-        command = linear_path(a, b, points=20, margin=0.15)
+        margin = (blend + 0.0025) / float(np.linalg.norm(b - a))
+        command = linear_path(a, b, points=20, margin=margin)
         results[name] = (path_characteristics(command, measured_paths), path_characteristics(command, true_paths))
     results["corner"] = (corner_deviation(c1, c1 - c0, c2 - c1, measured_paths),
                          corner_deviation(c1, c1 - c0, c2 - c1, true_paths))

@@ -586,7 +586,11 @@ def test_environment_frames_decode_to_the_twins_air(env_twin, env_bus):
     unit = twin.environment()
     model = AmbientModel(ENV_SEED, twin.config.ambient)  # the cell's air, from the seed alone
     offsets = unit["sensor_offsets"]
-    frames = [f for f in _capture(env_bus, 0.6) if f.arbitration_id in (ENV_AIR_ID, ENV_MATERIAL_ID)]
+    # Until 16 environment frames have come (about 0.4 s idle); a loaded machine may take longer.
+    frames: list[can.Message] = []
+    deadline = time.monotonic() + 15.0
+    while len(frames) < 16 and time.monotonic() < deadline:
+        frames += [f for f in _capture(env_bus, 0.2) if f.arbitration_id in (ENV_AIR_ID, ENV_MATERIAL_ID)]
     assert len(frames) >= 16 and all(_good_crc(f) and not f.is_extended_id for f in frames)
     # Air first, then the material frame of the same cycle; the counter steps by one per cycle.
     start = 0 if frames[0].arbitration_id == ENV_AIR_ID else 1

@@ -436,6 +436,11 @@ class Session:
             if not receive.isConnected():
                 self.broken = f"connection lost during {operation}"
                 raise Failure("connection", operation, "the connection was lost during the move", broken=True)
+            try:
+                self._check_fresh(operation)
+            except Failure as stale:  # the client still waits for its script's flag: this connection is done
+                self.broken = f"{stale.cause} during a circular move"
+                raise Failure(stale.kind, operation, stale.cause, broken=True) from None
             error = self._safety_error(operation)
             if error is not None:
                 # The client waits up to 600 s in sendCustomScript for a flag that will not come.
