@@ -60,9 +60,10 @@ def tool_poses(opr: np.ndarray, opr_to_tool: np.ndarray) -> np.ndarray:
 
 def noise_sigma(positions: np.ndarray) -> float:
     """σ (m) of one position component's white noise, from second differences (robust: MAD)."""
-    positions = np.asarray(positions, dtype=float).reshape(len(positions), -1)
+    positions = np.asarray(positions, dtype=float)
     if len(positions) < 5:
         return float("nan")
+    positions = positions.reshape(len(positions), -1)
     second = np.diff(positions, n=2, axis=0)
     mad = np.median(np.abs(second - np.median(second, axis=0)), axis=0) * 1.4826
     return float(np.sqrt(np.mean(mad**2)) / math.sqrt(6.0))
