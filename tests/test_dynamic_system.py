@@ -103,6 +103,7 @@ def test_path_accuracy_against_the_twins_truth(cell, tmp_path):
     corner = setting["corner"]
     print(f"corner: CR {corner['cr'] * 1e6:.2f} µm (true {corner['true']['cr'] * 1e6:.2f}), "
           f"CO {corner['co'] * 1e6:.2f} µm (true {corner['true']['co'] * 1e6:.2f})")
-    assert abs(corner["cr"] - corner["true"]["cr"]) <= 2e-6
+    # CR (no target) is one sample's distance, the closest: the vision's noise (σ ≈ 1–2 µm) enters it whole.
+    assert abs(corner["cr"] - corner["true"]["cr"]) <= 5e-6
     velocity = setting["velocity"]
     assert abs(velocity["av"] - velocity["true"]["av"]) < 0.005
