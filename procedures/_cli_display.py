@@ -164,6 +164,13 @@ class Display:
                 self.last_pose = pose_text(event)
                 if self._view is not None:
                     self._view.last = Text(self.last_pose, no_wrap=True, overflow="ellipsis")
+            elif kind == "stream":  # a move measured in motion: one per streamed second
+                distance = event.get("distance_to_target")
+                self.last_pose = (f"streaming {event.get('key', '')}: t {event.get('t', 0.0):.2f} s, "
+                                  + (f"{distance * 1e6:.1f} µm from target, " if distance is not None else "")
+                                  + f"{event.get('rate_hz') or 0:g} Hz, {event.get('dropped', 0)} dropped")
+                if self._view is not None:
+                    self._view.last = Text(self.last_pose, no_wrap=True, overflow="ellipsis")
             elif kind == "progress":
                 self.last_progress = event
                 if self._progress is not None and self._task is not None:

@@ -12,6 +12,8 @@ from __future__ import annotations
 import math
 from typing import Any
 
+from procedures.kinds._dynamic_export import DYNAMIC_KINDS, dynamic_figures
+
 ARCSEC = math.pi / (180 * 3600)
 ISO_FIGURES = (("rp_l", "RP_l", "µm", 1e6), ("rp_a", "RP_a", "″", 1 / ARCSEC), ("rp_b", "RP_b", "″", 1 / ARCSEC),
                ("rp_c", "RP_c", "″", 1 / ARCSEC), ("ap_p", "AP_P", "µm", 1e6))
@@ -157,6 +159,8 @@ def result_summary(run: dict[str, Any]) -> dict[str, Any] | None:
     if "record_path" in results:
         return {"kind": results.get("kind"), "record_path": results.get("record_path"),
                 "record_id": results.get("record_id"), "held_out": held_out_rows(results)}
+    if results.get("kind") in DYNAMIC_KINDS:
+        return {"kind": results["kind"], "settings": dynamic_figures(results)}
     return None
 
 
@@ -173,6 +177,10 @@ def result_lines(run: dict[str, Any]) -> list[str]:
         return iso_table_lines(results)
     if "record_path" in results:
         return calibration_lines(results)
+    if results.get("kind") in DYNAMIC_KINDS:
+        from procedures._report_dynamic import dynamic_result_lines
+
+        return dynamic_result_lines(results)
     return []
 
 

@@ -21,6 +21,8 @@ def register(subparsers) -> None:
     fmt.add_argument("--csv", action="store_true")
     fmt.add_argument("--json", action="store_true")
     parser.add_argument("-o", "--output", default=None, help="file (default: stdout)")
+    parser.add_argument("--streams", action="store_true", help="with --json: the pose stream of every move measured "
+                        "in motion (t, pose, raw, quality; SI), as \"streams\"")
     add_runs_dir(parser)
     parser.set_defaults(handler=run)
 
@@ -39,6 +41,11 @@ def run(args) -> int:
         else:
             document = json.loads(export_json(r, samples, store.events(r["id"]), store.superseded_samples(r["id"])))
             document["results"] = normalised_results(r)
+            if args.streams:
+                from procedures.kinds._dynamic_stream import StreamRecord
+
+                document["streams"] = [{"step": step, **StreamRecord.from_stored(stored).arrays(),
+                                        "meta": stored.meta} for step, stored in store.streams(r["id"]).items()]
             text = json.dumps(document, indent=1, default=str) + "\n"
     if args.output:
         write_output(args.output, text)

@@ -21,7 +21,7 @@ from __future__ import annotations
 import threading
 import time
 import traceback
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -215,7 +215,7 @@ class RunEngine:
                 self.compensators = compensators_in_force(self.station.model, self.science)
             context = StationStepContext(self.station, self.params, self.science, compensators=self.compensators,
                                          wait=self._wait, check_abort=self._check_abort, log=self._log,
-                                         run_dir=self.store.run_dir(self.run_id))
+                                         run_dir=self.store.run_dir(self.run_id), emit=self._emit)
             reason = None
             if resuming:
                 reason = f"resumed after {len(measured)} measured samples" + (
@@ -273,10 +273,14 @@ class RunEngine:
         problems = self.station.safe_state() if stop_devices else []
         self._set_state(state, reason=reason + ("; " + "; ".join(problems) if problems else ""), hook=hook)
 
+    def _streams(self, steps: Sequence[int] | None = None) -> dict[int, Any]:
+        return dict(self.store.streams(self.run_id, steps))
+
     def _analyse(self) -> None:
         context = AnalysisContext(run_id=self.run_id, station=self.station.model, science=self.science,
                                   compensators=self.compensators, run_dir=self.store.run_dir(self.run_id),
-                                  truth=_truth_log(self.station.model))
+                                  truth=_truth_log(self.station.model),
+                                  streams=self._streams)
         analysis = self.kind.analyse(self.store.samples(self.run_id), self.params, context)
         if analysis.calibration_record_id is not None:
             self.store.update_run(self.run_id, calibration_record_id=analysis.calibration_record_id)
@@ -355,7 +359,7 @@ class RunEngine:
             self.run_id, step.index, step.key, step.phase, label=step.label, ok=pose.ok, error=pose.error,
             commanded=commanded, solved=solved, corrected=pose.corrected, crosses=pose.crosses,
             reference=reading.reference, meta=step.meta, frames=pose.frames, t_start=t_start,
-            t_measured=pose.t_measured,
+            t_measured=pose.t_measured, stream=None if reading.stream is None else reading.stream.to_stored(),
         )
         # Committed: from here on nothing can lose this sample.
         if repeat:

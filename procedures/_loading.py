@@ -24,6 +24,8 @@ SCHEMA_DIR = PACKAGE_DIR / "schemas"
 def _field_name(loc: tuple) -> str:
     text = ""
     for part in loc:
+        if not isinstance(part, int) and not str(part).isprintable():  # a key like "\n" stays on the line
+            part = repr(str(part))
         text += f"[{part}]" if isinstance(part, int) else (f".{part}" if text else str(part))
     return text or "(document)"
 

@@ -156,6 +156,8 @@ class RatedConfig(_Strict):
     speed: float | None = Field(None, gt=0, description="rated TCP speed, m/s")
     acceleration: float | None = Field(None, gt=0, description="rated TCP acceleration, m/s²")
     payload: float | None = Field(None, gt=0, description="rated payload, kg")
+    stabilisation_band: float | None = Field(None, gt=0, le=0.01, description="the manufacturer's pose "
+                                             "stabilisation band, m (ISO 9283 7.4; iso9283_stabilisation's default)")
 
 
 class CalibrationConfig(_Strict):

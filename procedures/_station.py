@@ -149,6 +149,16 @@ class StationRuntime:
     def table(self) -> RotaryTable:
         return self._opened("rotary_table", self._make_table)
 
+    def camera_stream(self, rate_hz: float, **options: Any) -> Any:
+        """Start streaming the three cameras together (``drivers.camera.CameraTriplet.start_stream``;
+        ``options``: ``exposure_s``, ``roi``, ``timeout``). A ``camera_stream`` among the given devices
+        (tests' fakes) is started instead."""
+        given = self._given.get("camera_stream")
+        if given is not None:
+            return given.start_stream(rate_hz, **options)
+        triplet = drivers.camera.CameraTriplet({s: self.camera(s) for s in SCREENS}, name="cameras")
+        return triplet.start_stream(rate_hz, **options)
+
     @property
     def interferometer(self) -> Interferometer:
         return self._opened("interferometer", self._make_interferometer)

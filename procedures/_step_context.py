@@ -19,11 +19,20 @@ from drivers.camera import Frame, GrabFailed
 from drivers.interferometer import Interferometer
 from drivers.robot import MotionEnvelope, Robot
 from drivers.rotary_table import RotaryTable
+from procedures._errors import RunError
 from procedures._live_frames import write_live_frames
 from procedures._models import StationFile
 from procedures._science import COMPONENTS, Compensator, MeasurementFailed, PoseMeasurement, Science
 from procedures._station import StationRuntime
 from procedures.kinds import MotionParameters, PoseReading, Step, retry_wait
+from procedures.kinds._dynamic_stream import (
+    StreamRecord,
+    Tracker,
+    acquire_stream,
+    compensate_with,
+    distance_to,
+    seconds_of,
+)
 
 SCREENS = ("x", "y", "z")
 
@@ -47,14 +56,17 @@ class StationStepContext:
     check_abort : raises when the run has been aborted
     log : ``log(kind, message)`` into the run's events
     run_dir : the run's folder; saved frames go to its ``frames/``
+    emit : ``emit(event, **data)`` to the run's listener (the live ``stream`` events), optional
     """
 
     def __init__(self, station: StationRuntime, params: MotionParameters, science: Science, *,
                  compensators: Sequence[Compensator], wait: Callable[[float], None],
-                 check_abort: Callable[[], None], log: Callable[[str, str], None], run_dir: Path) -> None:
+                 check_abort: Callable[[], None], log: Callable[[str, str], None], run_dir: Path,
+                 emit: Callable[..., Any] | None = None) -> None:
         self._station, self._params, self._science = station, params, science
         self._compensators = list(compensators)
         self._wait, self._check_abort, self._log, self._run_dir = wait, check_abort, log, run_dir
+        self._emit = emit
         self.session: dict[str, Any] = {}
 
     def wait(self, seconds: float) -> None:
@@ -122,6 +134,50 @@ class StationStepContext:
                                crosses={s: [m.crosses.get(s) for m in measurements] for s in SCREENS},
                                frames=frames_saved or None, t_measured=float(np.mean(stamps)), attempts=attempt + 1)
         return PoseReading(ok=False, error=last_error, frames=frames_saved or None, attempts=p.retries_per_pose + 1)
+
+    def stream_motion(self, step: Step, motion: Callable[[], None], *, rate_hz: float, exposure_s: float,
+                      hold_s: float, target_in_m: Sequence[float] | None = None,
+                      direction: Mapping[str, int | None] | None = None) -> StreamRecord:
+        """Stream the cameras while ``motion()`` runs and ``hold_s`` after it (``acquire_stream``); the
+        poses corrected with the records in force for the approach ``direction``. One ``stream`` event
+        per streamed second goes to the listener (``distance_to_target`` from ``target_in_m``)."""
+        tracker = self._tracker(compensate_with(self._compensators, direction))
+
+        def start() -> Any:
+            try:
+                return self._station.camera_stream(rate_hz, exposure_s=exposure_s, timeout=self._params.grab_timeout_s)
+            except ValueError as exc:  # a camera that cannot stream, a rate out of range: the station's problem
+                raise RunError(f"{step.key}: cannot stream the cameras: {exc}") from None
+
+        record = acquire_stream(start, motion, robot=self.robot, hold_s=hold_s, wait=self._wait, tracker=tracker,
+                                exposure_s=dict.fromkeys(SCREENS, exposure_s), check_abort=self._check_abort)
+        self._announce(step, record, target_in_m)
+        return record
+
+    def _tracker(self, compensate: Callable[[np.ndarray], np.ndarray] | None) -> Tracker:
+        factory = getattr(self._science, "pose_tracker", None)  # a test's fake core brings its own
+        if factory is not None:
+            tracker: Tracker = factory(compensate=compensate)
+            return tracker
+        from instrument.pose import Geometry
+        from instrument.stream import PoseTracker
+
+        # The cameras' own clocks here (the stream retimes the samples once the clock models are fitted).
+        return PoseTracker(Geometry.from_dict(self._station.model.geometry), compensate=compensate,
+                           max_timestamp_spread=1e9)
+
+    def _announce(self, step: Step, record: StreamRecord, target_in_m: Sequence[float] | None) -> None:
+        if self._emit is None or not len(record):
+            return
+        distance = distance_to(record, np.asarray(target_in_m)) if target_in_m is not None else None
+        for i in seconds_of(record):
+            self._emit("stream", step=step.index, key=step.key, t=float(record.t[i]),
+                       pose=[float(v) for v in record.pose[i]],
+                       quality={"residual_rms": float(record.residual_rms[i]),
+                                "timestamp_spread": float(record.timestamp_spread[i]),
+                                "tracked": int(record.tracked[i])},
+                       rate_hz=record.meta.get("rate_hz"), dropped=record.dropped,
+                       distance_to_target=None if distance is None else float(distance[i]))
 
     def _corrected(self, pose: list[float], direction: Mapping[str, int | None] | None) -> dict[str, Any] | None:
         if not self._compensators:

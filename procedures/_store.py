@@ -38,7 +38,7 @@ from procedures._errors import RunLocked, StateConflict
 from procedures._run_state import RunState
 from procedures._store_db import SQLITE_FILE, Database, DuplicateStep, StoreError, connect, store_location
 
-__all__ = ["ROBOT_COLUMNS", "DuplicateStep", "Lease", "RunStore", "Sample", "StoreError"]
+__all__ = ["ROBOT_COLUMNS", "DuplicateStep", "Lease", "RunStore", "Sample", "StoreError", "StoredStream"]
 
 ROBOT_COLUMNS = ("robot_manufacturer", "robot_model", "robot_serial", "robot_controller_version")
 
@@ -119,6 +119,22 @@ class Sample:
     t_start: float | None
     t_measured: float | None
     t_committed: float | None
+
+
+@dataclass(frozen=True)
+class StoredStream:
+    """The pose stream of one step (a move measured in motion), as the store keeps it: one row.
+
+    ``data`` is opaque to the store (``procedures.kinds._dynamic_stream`` encodes and decodes it);
+    ``format`` names the encoding, ``samples`` the rows, ``columns`` their names, ``meta`` the
+    JSON-able rest (rate, drops, the robot's done time ...).
+    """
+
+    format: str
+    samples: int
+    columns: list[str]
+    data: bytes
+    meta: dict[str, Any] | None = None
 
 
 
@@ -393,12 +409,14 @@ class RunStore:
         frames: list | None = None,
         t_start: float | None = None,
         t_measured: float | None = None,
+        stream: StoredStream | None = None,
     ) -> None:
-        """Insert and commit one sample.
+        """Insert and commit one sample (and its pose ``stream``, in the same transaction).
 
         A step stored as *failed* is measured again by a later session: its failed row moves to
-        ``superseded_samples`` in the same transaction. Raises ``DuplicateStep`` if the step is already
-        stored as measured (a resumed run must never measure such a step again).
+        ``superseded_samples`` in the same transaction (a stream it had is replaced). Raises
+        ``DuplicateStep`` if the step is already stored as measured (a resumed run must never measure
+        such a step again).
         """
         values = (run_id, step_index, step_key, phase, label, int(ok), error, _dumps(commanded), _dumps(solved),
                   _dumps(corrected), _dumps(crosses), _dumps(reference), _dumps(meta), _dumps(frames), t_start,
@@ -409,6 +427,35 @@ class RunStore:
                 "FROM samples WHERE run_id = ? AND step_index = ? AND ok = 0", (time.time(), run_id, step_index))
             self._db.execute("DELETE FROM samples WHERE run_id = ? AND step_index = ? AND ok = 0", (run_id, step_index))
             self._db.execute(f"INSERT INTO samples ({_SAMPLE_COLUMNS}) VALUES ({', '.join('?' * 17)})", values)
+            if stream is not None:
+                self._db.execute("DELETE FROM streams WHERE run_id = ? AND step_index = ?", (run_id, step_index))
+                self._db.execute("INSERT INTO streams (run_id, step_index, format, samples, columns, meta, data) "
+                                 "VALUES (?,?,?,?,?,?,?)", (run_id, step_index, stream.format, int(stream.samples),
+                                                            _dumps(list(stream.columns)), _dumps(stream.meta),
+                                                            bytes(stream.data)))
+
+    def streams(self, run_id: str, steps: Iterable[int] | None = None) -> dict[int, StoredStream]:
+        """The stored pose streams of a run by step index (of ``steps`` only, when given)."""
+        sql = "SELECT step_index, format, samples, columns, meta, data FROM streams WHERE run_id = ?"
+        params: list[Any] = [run_id]
+        if steps is not None:
+            wanted = sorted({int(s) for s in steps})
+            if not wanted:
+                return {}
+            sql += f" AND step_index IN ({', '.join('?' * len(wanted))})"
+            params += wanted
+        out = {}
+        for row in self._db.rows(sql + " ORDER BY step_index", params):
+            index = int(row["step_index"])
+            out[index] = StoredStream(format=row["format"], samples=int(row["samples"]),
+                                      columns=json.loads(row["columns"]), data=bytes(row["data"]),
+                                      meta=json.loads(row["meta"]) if row["meta"] else None)
+        return out
+
+    def stream_steps(self, run_id: str) -> list[int]:
+        """The steps of a run that have a stored pose stream, in order (without reading the streams)."""
+        return [int(r["step_index"]) for r in self._db.rows(
+            "SELECT step_index FROM streams WHERE run_id = ? ORDER BY step_index", (run_id,))]
 
     def committed_steps(self, run_id: str) -> set[int]:
         """Steps with a stored sample, measured or failed."""

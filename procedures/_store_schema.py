@@ -169,11 +169,37 @@ CREATE TRIGGER events_changed AFTER INSERT OR UPDATE OR DELETE ON events
     FOR EACH STATEMENT EXECUTE FUNCTION store_changed();
 """
 
+# Issue 16: the pose stream of a move measured in motion. One row per move (per step), its samples as
+# one compressed binary column (``procedures.kinds._dynamic_stream`` encodes it: float64 columns t,
+# pose, raw pose, quality), not one row per frame: a move is hundreds of samples and a run thousands
+# of moves. Written in the same transaction as the step's sample, so it is committed with it.
+def _v5(blob: str) -> str:
+    return f"""
+CREATE TABLE IF NOT EXISTS streams (
+    run_id TEXT NOT NULL,
+    step_index INTEGER NOT NULL,
+    format TEXT NOT NULL,
+    samples INTEGER NOT NULL,
+    columns TEXT NOT NULL,
+    meta TEXT,
+    data {blob} NOT NULL,
+    PRIMARY KEY (run_id, step_index)
+);
+"""
+
+
+_V5_POSTGRESQL = _v5("BYTEA") + """
+CREATE TRIGGER streams_changed AFTER INSERT OR UPDATE OR DELETE ON streams
+    FOR EACH STATEMENT EXECUTE FUNCTION store_changed();
+"""
+
 MIGRATIONS: tuple[Migration, ...] = (
     Migration(1, "runs, samples and events (the store as first written)", _v1("REAL"), _v1("DOUBLE PRECISION")),
     Migration(2, "superseded samples and run leases", _v2("REAL"), _v2("DOUBLE PRECISION")),
     Migration(3, "the robot's identity on each run; events numbered", _V3_SQLITE, _V3_POSTGRESQL),
     Migration(4, "a change counter for readers (PostgreSQL; SQLite has data_version)", "", _V4_POSTGRESQL),
+    Migration(5, "the pose stream of each move measured in motion (one compressed row per move)", _v5("BLOB"),
+              _V5_POSTGRESQL),
 )
 LATEST = MIGRATIONS[-1].version
 

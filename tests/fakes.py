@@ -103,6 +103,14 @@ class FakeCell:
         self.environment_faults: set[int] = set()
         self.environment_reads = 0
         self.log: list[str] = []
+        # Motion in time (the kinds that measure while the robot moves): each move's controller times and
+        # its path in M, with a known ring-down after the done signal (``true_at``).
+        self.motions: list[FakeMotion] = []
+        self.ring_amplitude_per_speed = 80e-6  # m of residual vibration per m/s of the move
+        self.ring_frequency, self.ring_damping = 12.0, 0.2  # Hz, ζ
+        self.max_move_duration = 0.15  # s of wall time a fake move takes at most
+        self.stream_drops: set[int] = set()  # trigger numbers whose frames never arrive
+        self.timed_moves = False  # True: every move takes time and rings down (the dynamic kinds' tests)
         self.robot = FakeRobot(self)
         self.cameras = {s: FakeCamera(self, s) for s in "xyz"}
         self.table = FakeTable(self)
@@ -111,7 +119,22 @@ class FakeCell:
 
     def devices(self) -> dict:
         return {"robot": self.robot, "rotary_table": self.table, "interferometer": self.interferometer,
-                **{f"camera:{s}": c for s, c in self.cameras.items()}}
+                "camera_stream": FakeCameraStreams(self), **{f"camera:{s}": c for s, c in self.cameras.items()}}
+
+    def true_at(self, times) -> np.ndarray:
+        """(n, 6) the true OPR pose in M at controller times (``time.monotonic``)."""
+        times = np.atleast_1d(np.asarray(times, dtype=float))
+        with self.lock:
+            motions = list(self.motions)
+            rest = self.opr_in_m.copy()
+        out = np.tile(rest, (len(times), 1))
+        for i, t in enumerate(times):
+            started = [m for m in motions if m.t_start <= t]
+            if started:
+                out[i] = started[-1].at(t, self)
+            elif motions:
+                out[i] = motions[0].waypoints[0]
+        return out
 
     def set_truth(self, pose6: np.ndarray) -> None:
         with self.lock:
@@ -123,6 +146,35 @@ class FakeCell:
                      "tool_in_m": {"t": tool[:3].tolist(), "euler": tool[3:].tolist()}}
             with open(self.truth_path, "a", encoding="utf-8") as handle:
                 handle.write(json.dumps(entry) + "\n")
+
+
+class FakeMotion:
+    """One fake move: through ``waypoints`` (n, 6) in M at constant speed from ``t_start`` to ``t_done``,
+    then a damped ring-down along the last segment's direction (amplitude ∝ speed)."""
+
+    def __init__(self, t_start: float, t_done: float, waypoints: np.ndarray, speed: float) -> None:
+        self.t_start, self.t_done, self.waypoints, self.speed = t_start, t_done, np.asarray(waypoints), speed
+        lengths = np.linalg.norm(np.diff(self.waypoints[:, :3], axis=0), axis=1)
+        self.cumulative = np.concatenate([[0.0], np.cumsum(lengths)])
+
+    def at(self, t: float, cell: FakeCell) -> np.ndarray:
+        end = self.waypoints[-1].copy()
+        total = self.cumulative[-1]
+        if t < self.t_done and total > 0:
+            s = total * (t - self.t_start) / (self.t_done - self.t_start)
+            k = min(int(np.searchsorted(self.cumulative, s, side="right")) - 1, len(self.waypoints) - 2)
+            u = (s - self.cumulative[k]) / max(self.cumulative[k + 1] - self.cumulative[k], 1e-12)
+            return self.waypoints[k] + u * (self.waypoints[k + 1] - self.waypoints[k])
+        if total <= 0:
+            return end
+        direction = self.waypoints[-1, :3] - self.waypoints[-2, :3]
+        direction = direction / max(np.linalg.norm(direction), 1e-12)
+        omega = 2 * np.pi * cell.ring_frequency
+        zeta = cell.ring_damping
+        tau = t - self.t_done
+        amplitude = cell.ring_amplitude_per_speed * self.speed
+        end[:3] += direction * amplitude * np.exp(-zeta * omega * tau) * np.sin(omega * np.sqrt(1 - zeta**2) * tau)
+        return end
 
 
 class FakeRobot:
@@ -165,6 +217,9 @@ class FakeRobot:
         return self.pose.copy()
 
     def move_linear(self, pose, speed=0.25, acceleration=1.2, *, asynchronous=False, timeout=None) -> None:
+        if self.cell.timed_moves:
+            self._timed_move([pose], speed)
+            return
         self.envelope.check_pose(pose)
         if self.protective_stop:
             raise ProtectiveStop("robot", "moveL", "robot is in protective stop")
@@ -184,6 +239,48 @@ class FakeRobot:
 
     def stop(self, deceleration: float = 2.0) -> None:
         self.stops += 1
+
+    # -- motion in time (controller clock: time.monotonic)
+    def _timed_move(self, targets, speed: float) -> None:
+        targets = np.atleast_2d(np.asarray(targets, dtype=float))
+        for pose in targets:
+            self.envelope.check_pose(pose)
+        if self.protective_stop:
+            raise ProtectiveStop("robot", "move", "robot is in protective stop")
+        c = self.cell
+        c.moves += 1
+        with c.lock:
+            start = c.opr_in_m.copy()
+        waypoints = [start] + [matrix_to_euler(tcp_in_m(REFERENCE_TCP, p)) for p in targets]
+        length = float(np.sum(np.linalg.norm(np.diff(np.array(waypoints)[:, :3], axis=0), axis=1)))
+        duration = min(c.max_move_duration, length / max(float(speed), 1e-6))
+        waypoints[-1][:3] += c.rng.normal(0, c.robot_sigma, 3)
+        t_start = time.monotonic()
+        motion = FakeMotion(t_start, t_start + duration, np.array(waypoints), float(speed))
+        with c.lock:
+            c.motions.append(motion)
+        time.sleep(duration)
+        self.pose = targets[-1].copy()
+        self.done_time = motion.t_done
+        if c.mount == "robot":
+            c.set_truth(np.array(waypoints[-1]))
+
+    def move_path(self, poses, speed=0.25, acceleration=1.2, blend_radius=0.0, *, asynchronous=False,
+                  timeout=None) -> None:
+        self._timed_move(poses, float(np.max(speed)))
+
+    def move_circular(self, via, to, speed=0.25, acceleration=1.2, *, blend_radius=0.0, timeout=None) -> None:
+        vias, tos = np.atleast_2d(via), np.atleast_2d(to)
+        self._timed_move(np.array([p for pair in zip(vias, tos) for p in pair]), speed)
+
+    def last_move_done_time(self) -> float | None:
+        return getattr(self, "done_time", None)
+
+    def controller_time(self) -> float:
+        return time.monotonic()
+
+    def is_steady(self) -> bool:
+        return True
 
     def wait_until_steady(self, timeout: float = 10.0) -> None:
         pass
@@ -216,6 +313,87 @@ class FakeCamera:
             self.cell.snapshots[frame_id] = self.cell.opr_in_m.copy()
         image = np.full((8, 8), frame_id % 256, dtype=np.uint8)
         return Frame(image=image, timestamp=time.time(), frame_id=frame_id, camera=self.screen, saturation=255)
+
+
+class FakeFrameStream:
+    """A fake ``drivers.camera.FrameStream``: triggers at ``rate_hz`` from start to ``stop()``; each
+    'image' carries its exposure's middle on the controller clock (the fake tracker reads the truth there)."""
+
+    def __init__(self, cell: FakeCell, rate_hz: float, exposure_s: float) -> None:
+        self.cell, self.rate_hz, self.exposure = cell, float(rate_hz), float(exposure_s)
+        self.t0 = time.monotonic()
+        self.pulses: np.ndarray | None = None
+        self.closed = False
+        self.offsets = {"x": 0.1, "y": -0.2, "z": 0.3}  # each camera's clock offset from the controller's, s
+
+    def stop(self) -> None:
+        if self.pulses is None:
+            count = int((time.monotonic() - self.t0) * self.rate_hz) + 1
+            self.pulses = self.t0 + np.arange(count) / self.rate_hz
+
+    def sync_times(self):
+        return self.pulses
+
+    def __iter__(self):
+        from types import SimpleNamespace
+
+        assert self.pulses is not None
+        for k, t in enumerate(self.pulses):
+            if k in self.cell.stream_drops:
+                yield SimpleNamespace(index=k, frames={}, timestamps={}, missing=dict.fromkeys("xyz", "fake drop"))
+                continue
+            middle = t + 0.5 * self.exposure
+            frames = {s: np.array([middle]) for s in "xyz"}
+            yield SimpleNamespace(index=k, frames=frames, timestamps={s: middle + o for s, o in self.offsets.items()},
+                                  missing={})
+
+    def close(self) -> None:
+        self.closed = True
+
+
+class FakeCameraStreams:
+    """The station's ``camera_stream`` role on the fake cell."""
+
+    def __init__(self, cell: FakeCell) -> None:
+        self.cell = cell
+        self.started: list[FakeFrameStream] = []
+
+    def start_stream(self, rate_hz: float, *, exposure_s: float = 1e-3, timeout: float = 5.0, roi=None):
+        stream = FakeFrameStream(self.cell, rate_hz, exposure_s)
+        self.started.append(stream)
+        return stream
+
+
+class FakeTracker:
+    """The fake core's stream: each trigger's pose is the truth at its exposure's middle, with the fake
+    instrument's systematic error and noise, then ``compensate``."""
+
+    def __init__(self, science: FakeScience, compensate) -> None:
+        self.science, self.compensate = science, compensate
+        self.rows: list[tuple] = []
+
+    def add(self, index, timestamps, images):
+        if set(images) != set("xyz"):
+            return None
+        t = float(images["x"][0])
+        true = self.science.cell.true_at([t])[0]
+        raw = np.array([true[i] + systematic_error(i, true[i]) for i in range(6)])
+        raw[:3] += self.science.rng.normal(0, self.science.noise, 3)
+        raw[3:] += self.science.rng.normal(0, self.science.angle_noise, 3)
+        pose = raw if self.compensate is None else self.compensate(raw)
+        self.rows.append((index, float(np.mean(list(timestamps.values()))), pose, raw))
+        return None
+
+    def stream(self):
+        from types import SimpleNamespace
+
+        n = len(self.rows)
+        return SimpleNamespace(index=np.array([r[0] for r in self.rows], dtype=int),
+                               time=np.array([r[1] for r in self.rows]),
+                               pose=np.array([r[2] for r in self.rows]).reshape(n, 6),
+                               raw=np.array([r[3] for r in self.rows]).reshape(n, 6),
+                               residual_rms=np.full(n, 1e-7), timestamp_spread=np.zeros(n),
+                               tracked=np.full(n, 3), drops=())
 
 
 class FakeTable:
@@ -379,6 +557,9 @@ class FakeScience:
         crosses = {s: {"center_px": [100.0, 100.0], "residual_rms_px": [0.05, 0.05]} for s in frames}
         return PoseMeasurement(pose=pose, residual_rms=1e-7, crosses=crosses)
 
+    def pose_tracker(self, *, compensate=None) -> FakeTracker:
+        return FakeTracker(self, compensate)
+
     def visibility_problems(self, opr_in_m):
         return [] if np.all(np.abs(opr_in_m[:3]) < 0.1) else ["cross off screen (fake)"]
 
@@ -435,8 +616,10 @@ def main(argv: list[str]) -> int:
     parser.add_argument("procedure")
     parser.add_argument("--move-delay", type=float, default=0.0)
     parser.add_argument("--resume", default=None)
+    parser.add_argument("--timed", action="store_true", help="moves take time and ring down (the dynamic kinds)")
     args = parser.parse_args(argv)
     cell = FakeCell(seed=3, move_delay=args.move_delay)
+    cell.timed_moves = args.timed
     with open_engine(args.runs_dir, procedure=args.procedure, station=args.station, run_id=args.resume,
                      science=FakeScience(cell), devices=cell.devices(), operator=cell.operator) as engine:
         print(engine.run_id, flush=True)

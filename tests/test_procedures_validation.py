@@ -81,7 +81,7 @@ BAD_PROCEDURES = [
      parameters: {}
      """,
         "bad.yaml:1: procedure: expected one of displacement_calibration, angle_calibration, "
-        "iso9283_repeatability (missing)",
+        "iso9283_repeatability, iso9283_stabilisation, iso9283_path (missing)",
     ),
     (
         """\

@@ -109,3 +109,34 @@ def test_runs_list_and_robot_page_update_without_reloading(browser, tmp_path):
         # The run recorded the robot its controller named (the UR twin answers like a UR5): grouped by serial.
         assert "Universal Robots UR5 serial" in (page.text_content("#robots") or "")
         page.close()
+
+
+def test_live_page_shows_the_pose_stream_of_a_run_measured_in_motion(browser, tmp_path):
+    import json
+
+    runs = tmp_path / "runs"
+    procedure = tmp_path / "stabilisation.yaml"
+    procedure.write_text("procedure: iso9283_stabilisation\nparameters: {cycles: 2, speeds_percent: [100], "
+                         "window_s: 0.3, rest_s: 0.2}\n", encoding="utf-8")
+    with instrument_serve(runs) as endpoints:
+        page = browser.new_page(viewport={"width": 390, "height": 844})
+        page.goto(endpoints["web"] + "live")
+        page.evaluate("window.sameDocument = true")
+        with instrument_run(runs, procedure, tmp_path / "run.log") as run:
+            page.wait_for_selector("#posestream svg polyline.distance", timeout=150_000)
+            page.wait_for_function("document.querySelector('#state .state').textContent === 'FINISHED'",
+                                   timeout=150_000)
+            assert run.wait(60) == 0
+        page.wait_for_function("document.querySelector('#posestream svg').dataset.step === '1'", timeout=30_000)
+        events = [json.loads(line) for line in (tmp_path / "run.log").read_text().splitlines() if line.startswith("{")]
+        run_id = events[-1]["run_id"]
+        answer = page.request.get(endpoints["web"] + f"api/runs/{run_id}/posestream").json()
+        drawn = page.get_attribute("#posestream svg polyline.distance", "points") or ""
+        assert answer["step"] == 1 and len(drawn.split()) == len(answer["t"]) == answer["poses"] > 20
+        assert page.locator("#posestream svg line.done").count() == 1  # the robot's done signal marked
+        assert page.evaluate("window.sameDocument") is True
+        # The --jsonl stream events of the same run: one per streamed second at least, SI.
+        live = [e for e in events if e.get("event") == "stream"]
+        assert len(live) >= 2 and all(len(e["pose"]) == 6 and e["rate_hz"] == 100.0 for e in live)
+        assert all(e["distance_to_target"] < 0.01 for e in live)  # within 10 mm of the commanded pose
+        page.close()

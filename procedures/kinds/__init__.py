@@ -12,7 +12,13 @@ from collections.abc import Mapping
 from types import MappingProxyType
 from typing import Any
 
-from procedures.kinds import angle_calibration, displacement_calibration, iso9283_repeatability
+from procedures.kinds import (
+    angle_calibration,
+    displacement_calibration,
+    iso9283_path,
+    iso9283_repeatability,
+    iso9283_stabilisation,
+)
 from procedures.kinds._parameters import AxisName, MotionParameters, ProcedureBase, retry_wait
 from procedures.kinds._protocol import (
     Analysis,
@@ -37,6 +43,8 @@ _REGISTERED: tuple[ProcedureKind[Any], ...] = (
     displacement_calibration.KIND,
     angle_calibration.KIND,
     iso9283_repeatability.KIND,
+    iso9283_stabilisation.KIND,
+    iso9283_path.KIND,
 )
 _KINDS: dict[str, ProcedureKind[Any]] = {kind.name: kind for kind in _REGISTERED}
 KINDS: Mapping[str, ProcedureKind[Any]] = MappingProxyType(_KINDS)

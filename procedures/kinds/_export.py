@@ -11,6 +11,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
+from procedures.kinds._dynamic_export import DYNAMIC_KINDS, dynamic_figures
 from procedures.kinds._iso_analysis import POINT_FIGURES, figure_without_uncertainty
 
 SCHEMA = "opr-instrument-results/1"
@@ -39,6 +40,9 @@ def normalised_results(run: Mapping[str, Any]) -> dict[str, Any]:
                     true = entry.get("true_stats") or {}
                     out["points"][label] = {name: figure_without_uncertainty(name, stats, true)
                                             for name in POINT_FIGURES if name in stats}
+        out["uncertainty"] = results.get("uncertainty")
+    elif kind in DYNAMIC_KINDS:
+        out["dynamic"] = dynamic_figures(results)
         out["uncertainty"] = results.get("uncertainty")
     elif isinstance(kind, str) and kind.endswith("_calibration"):
         out["components"] = dict(results.get("residual_uncertainty") or {})

@@ -8,7 +8,7 @@ a ``StepContext``), and turns the committed samples into results (``analyse``, t
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, Protocol, TypeVar
@@ -105,10 +105,13 @@ class Reading:
     """What one step measured: the pose, and the references the kind read beside it (SI, JSON-able).
 
     ``reference["value"]``, when present, is the reference the calibration compares against.
+    ``stream``: the move's pose stream (``_dynamic_stream.StreamRecord``) of a kind that measures in
+    motion; the engine stores it with the sample, in the same transaction.
     """
 
     pose: PoseReading
     reference: dict[str, Any]
+    stream: Any = None
 
 
 class StepContext(Protocol):
@@ -156,6 +159,13 @@ class StepContext(Protocol):
         """Wait the procedure's settle time (an abort cuts it short)."""
         ...
 
+    def stream_motion(self, step: Step, motion: Callable[[], None], *, rate_hz: float, exposure_s: float,
+                      hold_s: float, target_in_m: Sequence[float] | None = None,
+                      direction: Mapping[str, int | None] | None = None) -> Any:
+        """Stream the cameras while ``motion()`` runs and ``hold_s`` after; → the move's
+        ``_dynamic_stream.StreamRecord`` (poses corrected for ``direction``, times on the controller's clock)."""
+        ...
+
     def measure_pose(self, step: Step, *, direction: Mapping[str, int | None] | None = None) -> PoseReading:
         """Grab ``frames_per_pose`` frame triples and solve the pose, retrying failed frames; correct it
         with the records in force, for the approach ``direction`` per component (±1; None: unknown)."""
@@ -172,6 +182,8 @@ class AnalysisContext:
     compensators: Sequence[Compensator]
     run_dir: Path
     truth: TruthLog | None = None
+    streams: Callable[[Sequence[int] | None], dict[int, Any]] | None = None
+    """The run's stored pose streams by step (``RunStore.streams``), of the given steps or all."""
 
 
 @dataclass(frozen=True)

@@ -181,6 +181,13 @@ def create_app(settings: WebSettings, *, reader: StoreReader | None = None) -> F
         """Every committed sample: step, key, label, phase, cycle, ok, error, pose [x,y,z,a,b,c] (m, rad)."""
         return _jsonable({"points": [p for p in find(run_id)["points"] if p["step"] > after]})
 
+    @app.get("/api/runs/{run_id}/posestream")
+    def posestream(run_id: str) -> dict[str, Any]:
+        """The newest move measured in motion: ``t`` (s from the done signal), ``distance`` (m, to the attained
+        pose), ``step``, ``key``, ``rate_hz``, ``dropped``, ``poses``; ``{"step": null}`` when the run has none."""
+        snap = find(run_id)
+        return _jsonable(reader.latest_stream(snap["run"]["id"]) or {"step": None})
+
     @app.get("/api/runs/{run_id}/events")
     def events(run_id: str) -> dict[str, Any]:
         """The run's events (state changes, set-ups, dry run, retries, failed hooks), oldest first."""
@@ -238,7 +245,8 @@ def create_app(settings: WebSettings, *, reader: StoreReader | None = None) -> F
     async def run_stream(run_id: str, request: Request) -> StreamingResponse:
         """Server-sent events of one run (``current``: the run ``/live`` follows, switching when a new run
         starts): ``switch`` (a new run), ``run`` (summary and progress), ``points`` (new samples),
-        ``events`` (new events), ``frames`` (a newer frame triple), ``results`` (once the run has them)."""
+        ``events`` (new events), ``frames`` (a newer frame triple), ``posestream`` (the newest move measured in
+        motion: distance to its attained pose over time), ``results`` (once the run has them)."""
         return _event_stream(_follow(run_id))
 
     async def _follow(requested: str) -> AsyncIterator[str]:
@@ -246,6 +254,7 @@ def create_app(settings: WebSettings, *, reader: StoreReader | None = None) -> F
         seen, run_id = -2, None
         sent_steps: set[int] = set()
         sent_events, frames_step, results_sent = 0, None, False
+        stream_step: int | None = None
         while True:
             version = await watcher.wait(seen, KEEP_ALIVE_S)
             if version == seen:
@@ -264,6 +273,7 @@ def create_app(settings: WebSettings, *, reader: StoreReader | None = None) -> F
             if snap["run"]["id"] != run_id:
                 run_id = snap["run"]["id"]
                 sent_steps, sent_events, frames_step, results_sent = set(), 0, None, False
+                stream_step = None
                 yield _sse("switch", {"run_id": run_id})
             yield _sse("run", _jsonable(snap["run"]))
             fresh = [p for p in snap["points"] if p["step"] not in sent_steps]
@@ -277,6 +287,10 @@ def create_app(settings: WebSettings, *, reader: StoreReader | None = None) -> F
             if frames is not None and frames["step"] != frames_step:
                 frames_step = frames["step"]
                 yield _sse("frames", _jsonable(frames))
+            motion = await run_in_threadpool(reader.latest_stream, snap["run"]["id"])
+            if motion is not None and motion["step"] != stream_step:
+                stream_step = motion["step"]
+                yield _sse("posestream", _jsonable(motion))
             if snap["results"] and not results_sent:
                 results_sent = True
                 yield _sse("results", _jsonable({"iso_points": iso_points(snap["results"]),

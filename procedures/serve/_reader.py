@@ -17,6 +17,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, TypeVar
 
+import numpy as np
+
 from procedures._run_state import RunState
 from procedures._store import RunStore, Sample
 
@@ -144,6 +146,30 @@ class StoreReader:
     def events(self, run_id: str) -> list[dict[str, Any]]:
         with self._lock:
             return self._store.events(run_id)
+
+    def latest_stream(self, run_id: str) -> dict[str, Any] | None:
+        """The newest stored pose stream of a run measured in motion (None: it has none), for the live
+        page's panel: ``step``, ``key``, ``t`` (s from the robot's done signal), ``distance`` (m, to the
+        attained pose: the mean of the stream's last fifth), ``rate_hz``, ``dropped``, ``poses``."""
+        from procedures.kinds._dynamic_stream import StreamRecord
+
+        def compute() -> dict[str, Any] | None:
+            with self._lock:
+                steps = self._store.stream_steps(run_id)
+                if not steps:
+                    return None
+                stored = self._store.streams(run_id, [steps[-1]])[steps[-1]]
+                keys = {s.step_index: s.step_key for s in self._store.samples(run_id)}
+            record = StreamRecord.from_stored(stored)
+            if not len(record):
+                return None
+            attained = record.pose[-max(3, len(record) // 5):, :3].mean(axis=0)
+            signal = record.meta.get("t_signal")
+            origin = float(signal) if signal is not None else float(record.t[0])
+            return {"step": steps[-1], "key": keys.get(steps[-1]), "t": (record.t - origin).tolist(),
+                    "distance": np.linalg.norm(record.pose[:, :3] - attained, axis=1).tolist(),
+                    "rate_hz": record.meta.get("rate_hz"), "dropped": record.dropped, "poses": len(record)}
+        return self._cached("posestream", run_id, compute)
 
     def current_run_id(self) -> str | None:
         """The run a live view follows: the newest running, paused or queued run, else the newest run."""

@@ -11,6 +11,8 @@ function reset(runId) {
   $("events").replaceChildren();
   $("frames").replaceChildren();
   $("results-section").hidden = true;
+  $("posestream-section").hidden = true;
+  $("posestream").replaceChildren();
   $("report").href = `/runs/${runId}/report`;
 }
 
@@ -92,6 +94,27 @@ function showResults(data) {
     el("td", { class: "num" }, withU(s, "rp_c", 2, ARCSEC)), el("td", { class: "num" }, withU(s, "ap_p", 1, UM)))));
 }
 
+// A move measured in motion (iso9283_stabilisation, iso9283_path): how far the tool was from where it came
+// to rest, over the streamed seconds; the robot's done signal at 0.
+function showPoseStream(d) {
+  $("posestream-section").hidden = false;
+  $("posestream-key").textContent = `(${d.key || d.step}, ${d.poses} poses at ${d.rate_hz} Hz, ${d.dropped} dropped)`;
+  const w = 320, h = 160, pad = 30;
+  const xs = d.t.map((t) => t * 1e3), ys = d.distance.map((v) => v * UM);
+  const [x0, x1] = [Math.min(...xs), Math.max(...xs)], y1 = Math.max(...ys, 1e-9);
+  const px = (x) => pad + ((x - x0) / (x1 - x0 || 1)) * (w - pad - 5), py = (y) => h - pad + 5 - (y / y1) * (h - pad);
+  const svg = svgEl("svg", { viewBox: `0 0 ${w} ${h}`, class: "posestream", "data-step": d.step });
+  svg.append(svgEl("polyline", { points: xs.map((x, i) => `${px(x).toFixed(1)},${py(ys[i]).toFixed(1)}`).join(" "),
+                                 fill: "none", stroke: "#1f77b4", "stroke-width": 1, class: "distance" }));
+  if (x0 <= 0 && x1 >= 0) {
+    svg.append(svgEl("line", { x1: px(0), x2: px(0), y1: py(0), y2: py(y1), stroke: "#d62728", class: "done" }));
+  }
+  const label = (x, y, text) => { const t = svgEl("text", { x, y, "font-size": 9 }); t.textContent = text; return t; };
+  svg.append(label(2, 10, `${fixed(y1, 1)} µm`), label(pad, h - 4, `${fixed(x0, 0)} ms`),
+             label(w - 40, h - 4, `${fixed(x1, 0)} ms`));
+  $("posestream").replaceChildren(svg);
+}
+
 const source = new EventSource(`/api/runs/${requested}/stream`);
 const on = (name, handler) => source.addEventListener(name, (e) => handler(JSON.parse(e.data)));
 on("switch", (d) => reset(d.run_id));
@@ -100,6 +123,7 @@ on("points", showPoints);
 on("events", showEvents);
 on("frames", showFrames);
 on("results", showResults);
+on("posestream", showPoseStream);
 on("waiting", (d) => { $("title").textContent = d.message; });
 on("failure", (d) => { $("title").textContent = d.message; source.close(); });
 source.onopen = () => { $("connection").textContent = "live"; };

@@ -1,0 +1,109 @@
+"""The kinds that measure while the robot moves, end to end on the simulated cell (real twins, real
+ur_rtde and pypylon's emulator, through the engine), against the twins' truth: the robot twin's dense
+trajectory at the stream's own instants (and, for stabilisation, at 1 kHz).
+
+The cell has ideal optics and exact mounts (as ``benchmarks/dynamic_truth.py``): the instrument's
+static errors — which a calibration record removes and these runs do not have — would otherwise add
+tens of µm of slowly varying error to the path figures. The robot carries 5 kg (its rated payload)
+so that the arrival rings. A kill -9 of a dynamic run is tested on the fake cell
+(``test_dynamic_procedures.py``, real SQLite, a child process), and the PostgreSQL round trip there too.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+from procedures._api import open_engine
+from procedures._run_state import RunState
+from sim_devices.cell import SimCell
+
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
+
+IDEAL_OPTICS = {
+    "screen_distance_std": 0.0, "screen_offset_std": 0.0, "screen_tilt_std": 0.0, "screen_twist_std": 0.0,
+    "scale_error_std": 0.0, "anisotropy_std": 0.0, "skew_std": 0.0, "rotation_error_std": 0.0,
+    "offset_error_std": 0.0, "perspective_std": 0.0, "distortion_k1_range": [0.0, 0.0], "distortion_k2_std": 0.0,
+    "distortion_centre_std_px": 0.0, "beam_tilt_std": 0.0, "fan_nonperpendicularity_std": 0.0,
+    "emitter_roll_std": 0.0, "emitter_offset_std": 0.0,
+}
+EXACT_MOUNTS = {"kinematics": {"opr_mount_translation_std": 0.0, "opr_mount_rotation_std": 0.0,
+                               "tool_translation_std": 0.0, "tool_rotation_std": 0.0}}
+RATE = 150.0  # Hz: 10 Hz rings sampled 15 times a cycle (the full 1040-row frame reads out in 5 ms)
+
+
+@pytest.fixture(scope="module")
+def cell(tmp_path_factory):
+    directory = tmp_path_factory.mktemp("dynamic-cell")
+    with SimCell(seed=2, directory=directory, time_scale=1.0,
+                 config={"world": EXACT_MOUNTS, "optics": IDEAL_OPTICS}) as running:
+        yield running
+
+
+def _ms(seconds: float | None) -> str:
+    return "never" if seconds is None else f"{seconds * 1e3:.2f}"
+
+
+def _procedure(tmp_path: Path, kind: str, **parameters) -> Path:
+    path = tmp_path / f"{kind}.yaml"
+    path.write_text(yaml.safe_dump({"procedure": kind, "parameters": {
+        "cycles": 2, "rate_hz": RATE, "payload_mass_kg": 5.0, "payload_cog_m": [0.0, 0.0, 0.05],
+        "rest_s": 0.4, **parameters}}), encoding="utf-8")
+    return path
+
+
+def _run(tmp_path: Path, procedure: Path, station: Path) -> dict:
+    with open_engine(tmp_path / "runs", procedure=procedure, station=station) as engine:
+        state = engine.execute()
+        run = engine.store.get_run(engine.run_id)
+        samples = engine.store.samples(engine.run_id)
+        streams = engine.store.streams(engine.run_id)
+    assert state == RunState.FINISHED, run["reason"]
+    assert all(s.ok for s in samples), [s.error for s in samples if not s.ok]
+    assert sorted(streams) == [s.step_index for s in samples if s.phase != "transform"]
+    return run
+
+
+def test_stabilisation_against_the_twins_truth(cell, tmp_path):
+    run = _run(tmp_path, _procedure(tmp_path, "iso9283_stabilisation", speeds_percent=[100], band_um=10.0,
+                                    window_s=0.4), cell.station_path)
+    results = run["results"]
+    assert results["simulated"] and len(results["moves"]) == 2
+    period = 1.0 / RATE
+    # A real ring-down: the 5 kg arrival at 1 m/s overshoots by µm and takes time to enter 10 µm (the
+    # twin's residual depends on the arrival's phase: a cycle may ring much less than another).
+    assert any(m["true"]["overshoot"] > 3e-6 and m["true"]["stabilisation_time"] > period for m in results["moves"])
+    for move in results["moves"]:
+        true = move["true"]
+        print(f"{move['key']}: t_s {_ms(move['stabilisation_time'])} ms (true {_ms(true['stabilisation_time'])}, "
+              f"dense {_ms(true['dense']['stabilisation_time'])}), overshoot {move['overshoot'] * 1e6:.2f} µm "
+              f"(true {true['overshoot'] * 1e6:.2f}, dense {true['dense']['overshoot'] * 1e6:.2f}), "
+              f"{move['poses']} poses, {move['dropped']} dropped")
+        assert abs(move["stabilisation_time"] - true["stabilisation_time"]) <= period
+        assert abs(move["overshoot"] - true["overshoot"]) <= 2e-6
+        assert abs(move["stabilisation_time"] - true["dense"]["stabilisation_time"]) <= period
+        # The 1 kHz truth peaks higher than any 150 Hz sampling of it can show (measured here: 9.6 µm dense
+        # vs 6.4 µm at the stream's instants): the overshoot is judged at the stream's own instants.
+        assert true["dense"]["overshoot"] >= true["overshoot"] - 0.1e-6
+        assert move["dropped"] == 0 and move["u_overshoot"] < 5e-6
+
+
+def test_path_accuracy_against_the_twins_truth(cell, tmp_path):
+    run = _run(tmp_path, _procedure(tmp_path, "iso9283_path", speeds_percent=[50], hold_s=0.1,
+                                    rate_hz=50.0, circle_radius_mm=10.0,
+                                    settle_time_s=0.2, frames_per_pose=1), cell.station_path)
+    setting = run["results"]["settings"][0]
+    for part in ("leg_1", "leg_2", "circle"):
+        figures = setting[part]
+        print(f"{part}: AT_p {figures['at_p'] * 1e6:.2f} µm (true {figures['true']['at_p'] * 1e6:.2f}), "
+              f"RT_p {figures['rt_p'] * 1e6:.2f} µm (true {figures['true']['rt_p'] * 1e6:.2f})")
+        assert abs(figures["at_p"] - figures["true"]["at_p"]) <= 2e-6
+    corner = setting["corner"]
+    print(f"corner: CR {corner['cr'] * 1e6:.2f} µm (true {corner['true']['cr'] * 1e6:.2f}), "
+          f"CO {corner['co'] * 1e6:.2f} µm (true {corner['true']['co'] * 1e6:.2f})")
+    # CR (no target) is one sample's distance, the closest: the vision's noise (σ ≈ 1–2 µm) enters it whole.
+    assert abs(corner["cr"] - corner["true"]["cr"]) <= 5e-6
+    velocity = setting["velocity"]
+    assert abs(velocity["av"] - velocity["true"]["av"]) < 0.005
