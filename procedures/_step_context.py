@@ -104,7 +104,8 @@ class StationStepContext:
     def settle(self) -> None:
         self._wait(self._params.settle_time_s)
 
-    def measure_pose(self, step: Step, *, direction: Mapping[str, int | None] | None = None) -> PoseReading:
+    def measure_pose(self, step: Step, *, direction: Mapping[str, int | None] | None = None,
+                     expected: Mapping[int, float] | None = None) -> PoseReading:
         p = self._params
         last_error, frames_saved = "", []
         for attempt in range(p.retries_per_pose + 1):
@@ -126,10 +127,17 @@ class StationStepContext:
                 continue
             write_live_frames(self._run_dir, step.index, step.key, {s: f.image for s, f in triples[-1].items()},
                               measurements[-1].crosses)
+            solved = _solved(measurements)
+            implausible = _implausible(solved["pose"], expected, p)
+            if implausible:  # a frame of another pose (stale, or another target): never a good sample
+                last_error = f"attempt {attempt + 1}: {implausible}"
+                self._log("measure_failed", f"{step.key}: {last_error}")
+                if p.save_frames != "never":
+                    frames_saved += self._save_frames(step, triples, f"failed{attempt}")
+                continue
             if p.save_frames == "always":
                 frames_saved += self._save_frames(step, triples, "ok")
             stamps = [f.timestamp for t in triples for f in t.values()]
-            solved = _solved(measurements)
             return PoseReading(ok=True, solved=solved, corrected=self._corrected(solved["pose"], direction),
                                crosses={s: [m.crosses.get(s) for m in measurements] for s in SCREENS},
                                frames=frames_saved or None, t_measured=float(np.mean(stamps)), attempts=attempt + 1)
@@ -201,6 +209,27 @@ class StationStepContext:
                 np.save(path, np.asarray(frame.image))
                 saved.append(str(Path("frames") / path.name))
         return saved
+
+
+def _implausible(pose: Sequence[float], expected: Mapping[int, float] | None, params: MotionParameters) -> str:
+    """Why a solved pose cannot be the one the devices were sent to ("" if it can): a coordinate farther than
+    ``plausibility_mm`` (positions) or ``plausibility_deg`` (angles) from its expected raw value. The limits
+    sit far above the raw instrument's error (tens of µm and arc-seconds) and below one calibration step
+    (5 mm, 0.25°), so a frame left from the previous pose is caught."""
+    if not expected:
+        return ""
+    limits = (params.plausibility_mm * 1e-3, float(np.radians(params.plausibility_deg)))
+    off = []
+    for index, value in sorted(expected.items()):
+        limit = limits[index >= 3]
+        delta = float(pose[index]) - float(value)
+        if limit > 0 and abs(delta) > limit:
+            name = COMPONENTS[index]
+            off.append(f"{name} {delta * 1e3:+.3f} mm" if index < 3 else f"{name} {np.degrees(delta):+.4f}°")
+    if not off:
+        return ""
+    return (f"the measured pose is not where the devices were sent ({', '.join(off)}; limits "
+            f"{params.plausibility_mm:g} mm, {params.plausibility_deg:g}°): a stale or wrong frame")
 
 
 def _solved(measurements: Sequence[PoseMeasurement]) -> dict[str, Any]:

@@ -93,6 +93,11 @@ class FakeCell:
         self.moves = 0
         self.fail_grabs = 0
         self.fail_measures = 0
+        # Frame triples that show the pose from before the last move (a camera that missed the new pose):
+        # move number (1-based) → how many triples after it are stale.
+        self.stale_after_moves: dict[int, int] = {}
+        self.stale_grabs = 0
+        self.previous_opr = np.zeros(6)
         self.lose_datum_on_reads: set[int] = set()  # interferometer.average calls (1-based) that lose the datum
         self.reads = 0
         # The air along the beam (K, Pa, fraction) and the material sensor; environment() calls (1-based) that
@@ -138,6 +143,7 @@ class FakeCell:
 
     def set_truth(self, pose6: np.ndarray) -> None:
         with self.lock:
+            self.previous_opr = self.opr_in_m.copy()
             self.opr_in_m = np.asarray(pose6, dtype=float)
         if self.truth_path:
             tool = matrix_to_euler(euler_to_matrix(self.opr_in_m) @ ur_to_matrix(TOOL_IN_OPR))
@@ -224,6 +230,7 @@ class FakeRobot:
         if self.protective_stop:
             raise ProtectiveStop("robot", "moveL", "robot is in protective stop")
         self.cell.moves += 1
+        self.cell.stale_grabs = self.cell.stale_after_moves.get(self.cell.moves, 0)
         if self.cell.moves in self.cell.protective_stop_on_moves:
             self.protective_stop = True
             raise ProtectiveStop("robot", "moveL", "protective stop during the move (simulated collision)")
@@ -310,7 +317,10 @@ class FakeCamera:
             raise GrabFailed(self.name, "grab", "incomplete buffer (fake)")
         frame_id = next(self.cell.frame_ids)
         with self.cell.lock:
-            self.cell.snapshots[frame_id] = self.cell.opr_in_m.copy()
+            stale = self.cell.stale_grabs > 0
+            if stale and self.screen == "z":  # the last camera of a triple
+                self.cell.stale_grabs -= 1
+            self.cell.snapshots[frame_id] = (self.cell.previous_opr if stale else self.cell.opr_in_m).copy()
         image = np.full((8, 8), frame_id % 256, dtype=np.uint8)
         return Frame(image=image, timestamp=time.time(), frame_id=frame_id, camera=self.screen, saturation=255)
 

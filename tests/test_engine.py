@@ -214,6 +214,43 @@ def test_failed_measurements_are_recorded_with_their_frames(setup):
     assert all(s.ok for s in samples[1:])
 
 
+@pytest.mark.parametrize("stale_triples", [1, 3])
+def test_a_frame_of_the_previous_pose_is_measured_again_and_never_stored_as_good(setup, stale_triples):
+    """The cameras still show the previous pose after the robot reported the new one (a stale frame): the
+    pose is 35 mm from where the robot was sent, so the attempt fails and the pose is measured again; if
+    every attempt sees it, the sample fails (a resume measures it again) instead of being committed."""
+    tmp_path, station, cell = setup
+    cell.stale_after_moves = {3: stale_triples}  # the third move (P4 of the transform pass): P5's frames
+    proc = _procedure(tmp_path, "iso9283_repeatability", cycles=2, retry_backoff_s=0, frames_per_pose=1)
+    with _engine(tmp_path, station, cell, proc) as engine:
+        assert engine.execute() == "FINISHED"
+        samples = engine.store.samples(engine.run_id)
+        events = [e["message"] for e in engine.store.events(engine.run_id) if e["kind"] == "measure_failed"]
+    caught = [m for m in events if "not where the devices were sent" in m and "stale or wrong frame" in m]
+    assert len(caught) == stale_triples and all(m.startswith(samples[2].step_key) for m in caught)
+    assert [s.ok for s in samples] == [True, True, stale_triples < 3, *[True] * (len(samples) - 3)]
+    if stale_triples < 3:  # measured again: the pose of P4, not of P5
+        p4 = [s.solved["pose"][:3] for s in samples if s.label == "P4"]
+        assert len(p4) == 3 and np.all(np.ptp(p4, axis=0) < 1e-3)  # within a mm (P5 is 35 mm away)
+    else:
+        assert "stale or wrong frame" in samples[2].error
+
+
+def test_without_the_plausibility_check_a_stale_frame_would_be_stored_as_good(setup):
+    """The check above is what catches it: with the limits at 0 (not checked) the same stale triple is
+    committed as a good P4 sample 35 mm from the others."""
+    tmp_path, station, cell = setup
+    cell.stale_after_moves = {3: 1}
+    proc = _procedure(tmp_path, "iso9283_repeatability", cycles=2, frames_per_pose=1, plausibility_mm=0,
+                      plausibility_deg=0)
+    with _engine(tmp_path, station, cell, proc) as engine:
+        assert engine.execute() == "FINISHED"
+        samples = engine.store.samples(engine.run_id)
+    assert samples[2].ok and samples[2].label == "P4"
+    p4 = [s.solved["pose"][:3] for s in samples if s.label == "P4"]
+    assert np.max(np.ptp(p4, axis=0)) > 10e-3
+
+
 def test_too_many_failures_fail_the_run(setup):
     tmp_path, station, cell = setup
     cell.fail_grabs = 100

@@ -40,6 +40,11 @@ class MotionParameters(_Strict):
     max_failed_samples: int = Field(3, ge=0, le=100000, description="failed poses tolerated in one session of "
                                     "the run (a resume measures the failed ones again) before it fails")
     save_frames: Literal["never", "failed", "always"] = Field("failed", description="which raw frames to keep")
+    plausibility_mm: float = Field(2.0, ge=0, le=1000, description="largest distance, per coordinate, of a measured "
+                                   "position from where the robot was sent (nominal frames), mm; a pose farther off "
+                                   "is measured again (a stale or wrong frame), never stored as good; 0: not checked")
+    plausibility_deg: float = Field(0.1, ge=0, le=180, description="the same for the measured angles, degrees "
+                                    "(the angle calibration checks the angle about the table's axis)")
     operator: str | None = Field(None, max_length=200, description="who runs the test, recorded in its conditions "
                                  "(default: $INSTRUMENT_OPERATOR, else the login name)")
 

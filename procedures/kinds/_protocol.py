@@ -166,9 +166,13 @@ class StepContext(Protocol):
         ``_dynamic_stream.StreamRecord`` (poses corrected for ``direction``, times on the controller's clock)."""
         ...
 
-    def measure_pose(self, step: Step, *, direction: Mapping[str, int | None] | None = None) -> PoseReading:
+    def measure_pose(self, step: Step, *, direction: Mapping[str, int | None] | None = None,
+                     expected: Mapping[int, float] | None = None) -> PoseReading:
         """Grab ``frames_per_pose`` frame triples and solve the pose, retrying failed frames; correct it
-        with the records in force, for the approach ``direction`` per component (±1; None: unknown)."""
+        with the records in force, for the approach ``direction`` per component (±1; None: unknown).
+        ``expected``: pose component index (0–2 position, 3–5 angle) → the raw value the pose should have
+        where the devices were sent (nominal frames, SI); a solved pose farther than the parameters'
+        ``plausibility_mm`` / ``plausibility_deg`` from it is a failed attempt (a stale or wrong frame)."""
         ...
 
 

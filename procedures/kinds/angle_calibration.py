@@ -18,7 +18,7 @@ from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from procedures._models import StationFile
 from procedures._report_sections import calibration_results_html, calibration_summary_lines
-from procedures._science import ANGLE_COMPONENT
+from procedures._science import ANGLE_COMPONENT, COMPONENTS
 from procedures._store import Sample
 from procedures.kinds._approach import Approach, approach_table, directions_of
 from procedures.kinds._calibration import (
@@ -120,8 +120,10 @@ class AngleCalibrationKind:
     def measure(self, step: Step, params: AngleParameters, ctx: StepContext) -> Reading:
         ctx.settle()
         table_rad = float(ctx.table.position())
-        return Reading(pose=ctx.measure_pose(step), reference={"table_rad": table_rad, "value": table_rad,
-                                                               "approach": step.meta.get("approach")})
+        # Only the angle about the table's axis is known: the OPR's position turns with the table.
+        expected = {COMPONENTS.index(ANGLE_COMPONENT[step.meta["axis"]]): table_rad}
+        return Reading(pose=ctx.measure_pose(step, expected=expected),
+                       reference={"table_rad": table_rad, "value": table_rad, "approach": step.meta.get("approach")})
 
     def analyse(self, samples: Sequence[Sample], params: AngleParameters, ctx: AnalysisContext) -> Analysis:
         return analyse_calibration(samples, ctx, kind="angle", component_of_axis=ANGLE_COMPONENT,

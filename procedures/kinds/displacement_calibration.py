@@ -34,7 +34,7 @@ from procedures._geometry import translated_in_frame
 from procedures._models import StationFile, Vec3
 from procedures._report_sections import calibration_results_html, calibration_summary_lines
 from procedures._store import Sample
-from procedures.kinds._approach import Approach, approach_on_line, directions_of, note_line_position
+from procedures.kinds._approach import Approach, approach_on_line, directions_of, note_line_position, robot_pose_in_m
 from procedures.kinds._calibration import (
     analyse_calibration,
     check_calibration_size,
@@ -199,7 +199,8 @@ class DisplacementCalibrationKind:
                      "approach": step.meta.get("approach"),
                      "robot_tcp_pose": [float(v) for v in ctx.robot.tcp_pose()],
                      "datum_set_at": datum.set_at, "datum_reestablished": datum.reestablished}
-        return Reading(pose=ctx.measure_pose(step), reference=reference)
+        expected = robot_pose_in_m(ctx.station.frames.reference_tcp_pose, step.robot_target())
+        return Reading(pose=ctx.measure_pose(step, expected=dict(enumerate(expected))), reference=reference)
 
     def _datum(self, step: Step, params: DisplacementParameters, ctx: StepContext) -> Datum:
         """The datum of the step's group in this session: set here at the group's first point, kept

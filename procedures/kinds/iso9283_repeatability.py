@@ -142,7 +142,9 @@ class Iso9283RepeatabilityKind:
             reference["environment"] = environment_record(read_environment(ctx, params, step.key))
         if ctx.session.pop("conditions_pending", False):
             reference["session"] = ctx.session["conditions"]
-        return Reading(pose=ctx.measure_pose(step, direction=approach), reference=reference)
+        expected = robot_pose_in_m(ctx.station.frames.reference_tcp_pose, step.robot_target())
+        return Reading(pose=ctx.measure_pose(step, direction=approach, expected=dict(enumerate(expected))),
+                       reference=reference)
 
     def analyse(self, samples: Sequence[Sample], params: IsoParameters, ctx: AnalysisContext) -> Analysis:
         return Analysis(results=analyse_iso(samples, ctx, params))
