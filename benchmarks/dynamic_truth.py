@@ -31,15 +31,6 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-IDEAL_OPTICS = {
-    "screen_distance_std": 0.0, "screen_offset_std": 0.0, "screen_tilt_std": 0.0, "screen_twist_std": 0.0,
-    "scale_error_std": 0.0, "anisotropy_std": 0.0, "skew_std": 0.0, "rotation_error_std": 0.0,
-    "offset_error_std": 0.0, "perspective_std": 0.0, "distortion_k1_range": [0.0, 0.0], "distortion_k2_std": 0.0,
-    "distortion_centre_std_px": 0.0, "beam_tilt_std": 0.0, "fan_nonperpendicularity_std": 0.0,
-    "emitter_roll_std": 0.0, "emitter_offset_std": 0.0,
-}
-EXACT_MOUNTS = {"kinematics": {"opr_mount_translation_std": 0.0, "opr_mount_rotation_std": 0.0,
-                               "tool_translation_std": 0.0, "tool_rotation_std": 0.0}}
 PAYLOAD = (5.0, [0.0, 0.0, 0.05])  # kg, m: the UR5e's rated payload
 ROI = (0, 40, 1024, 960)  # 960 of the 1040 rows read out in 4.6 ms: 200 pulses/s without a miss
 
@@ -60,6 +51,8 @@ class Bench:
 
     def __init__(self, directory: Path, seed: int, rate: float, optics: str) -> None:
         from sim_devices.cell import SimCell
+        from sim_devices.optics import IDEAL_OPTICS
+        from sim_devices.world import EXACT_MOUNTS
 
         config = {"world": EXACT_MOUNTS}
         if optics == "ideal":
@@ -74,7 +67,7 @@ class Bench:
         from drivers.robot import create as create_robot
         from instrument.pose import Geometry
         from sim_devices.trajectory import TrajectoryLog
-        from sim_devices.world import World, WorldConfig
+        from sim_devices.world import EXACT_MOUNTS, World, WorldConfig
 
         self.robot = create_robot(station["devices"]["robot"], envelope=MotionEnvelope.from_dict(station["envelope"]))
         self.robot.open()

@@ -366,4 +366,16 @@ def _true_emitter(name: str, rng: np.random.Generator, cfg: OpticsConfig) -> Emi
     return Emitter(name, offset, beam, normals, levels, sigma)
 
 
-__all__ = ["AXIS_NAMES", "CameraModel", "CameraMount", "Emitter", "FANS", "OpticalBench", "OpticsConfig", "Screen"]
+# A bench built exactly as drawn (an ``OpticsConfig`` override): no screen, camera-calibration or emitter
+# errors, so a solved pose is the true one to the vision's noise. Tests and benchmarks that judge a
+# measurement against the truth without a calibration use it.
+IDEAL_OPTICS: dict[str, Any] = {
+    "screen_distance_std": 0.0, "screen_offset_std": 0.0, "screen_tilt_std": 0.0, "screen_twist_std": 0.0,
+    "scale_error_std": 0.0, "anisotropy_std": 0.0, "skew_std": 0.0, "rotation_error_std": 0.0,
+    "offset_error_std": 0.0, "perspective_std": 0.0, "distortion_k1_range": [0.0, 0.0], "distortion_k2_std": 0.0,
+    "distortion_centre_std_px": 0.0, "beam_tilt_std": 0.0, "fan_nonperpendicularity_std": 0.0,
+    "emitter_roll_std": 0.0, "emitter_offset_std": 0.0,
+}
+
+__all__ = ["AXIS_NAMES", "IDEAL_OPTICS", "CameraModel", "CameraMount", "Emitter", "FANS", "OpticalBench",
+           "OpticsConfig", "Screen"]

@@ -65,6 +65,11 @@ class KinematicsConfig:
     table_axis_misalignment_std: float = float(np.radians(0.005))
 
 
+# A world whose OPR and tool are mounted exactly as the station says (a ``WorldConfig`` override).
+EXACT_MOUNTS: dict[str, Any] = {"kinematics": {"opr_mount_translation_std": 0.0, "opr_mount_rotation_std": 0.0,
+                                               "tool_translation_std": 0.0, "tool_rotation_std": 0.0}}
+
+
 @dataclass
 class WorldConfig:
     seed: int = 0

@@ -19,21 +19,12 @@ from drivers.robot import create as create_robot
 from instrument.pose import Geometry
 from instrument.stream import PoseTracker, estimate_clock_offset
 from sim_devices.cell import SimCell
-from sim_devices.optics import OpticalBench
+from sim_devices.optics import IDEAL_OPTICS, OpticalBench
 from sim_devices.renderer import Renderer
 from sim_devices.trajectory import TrajectoryLog, true_poses_in_m
-from sim_devices.world import World, WorldConfig
+from sim_devices.world import EXACT_MOUNTS, World, WorldConfig
 
 SEED = 2
-IDEAL_OPTICS = {  # no calibration errors: a solved pose is the true one to the vision's noise
-    "screen_distance_std": 0.0, "screen_offset_std": 0.0, "screen_tilt_std": 0.0, "screen_twist_std": 0.0,
-    "scale_error_std": 0.0, "anisotropy_std": 0.0, "skew_std": 0.0, "rotation_error_std": 0.0,
-    "offset_error_std": 0.0, "perspective_std": 0.0, "distortion_k1_range": [0.0, 0.0], "distortion_k2_std": 0.0,
-    "distortion_centre_std_px": 0.0, "beam_tilt_std": 0.0, "fan_nonperpendicularity_std": 0.0,
-    "emitter_roll_std": 0.0, "emitter_offset_std": 0.0,
-}
-EXACT_MOUNTS = {"kinematics": {"opr_mount_translation_std": 0.0, "opr_mount_rotation_std": 0.0,
-                               "tool_translation_std": 0.0, "tool_rotation_std": 0.0}}
 
 
 # ------------------------------------------------------------------------------------ the emulator

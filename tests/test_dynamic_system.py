@@ -19,18 +19,11 @@ import yaml
 from procedures._api import open_engine
 from procedures._run_state import RunState
 from sim_devices.cell import SimCell
+from sim_devices.optics import IDEAL_OPTICS
+from sim_devices.world import EXACT_MOUNTS
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
 
-IDEAL_OPTICS = {
-    "screen_distance_std": 0.0, "screen_offset_std": 0.0, "screen_tilt_std": 0.0, "screen_twist_std": 0.0,
-    "scale_error_std": 0.0, "anisotropy_std": 0.0, "skew_std": 0.0, "rotation_error_std": 0.0,
-    "offset_error_std": 0.0, "perspective_std": 0.0, "distortion_k1_range": [0.0, 0.0], "distortion_k2_std": 0.0,
-    "distortion_centre_std_px": 0.0, "beam_tilt_std": 0.0, "fan_nonperpendicularity_std": 0.0,
-    "emitter_roll_std": 0.0, "emitter_offset_std": 0.0,
-}
-EXACT_MOUNTS = {"kinematics": {"opr_mount_translation_std": 0.0, "opr_mount_rotation_std": 0.0,
-                               "tool_translation_std": 0.0, "tool_rotation_std": 0.0}}
 RATE = 150.0  # Hz: 10 Hz rings sampled 15 times a cycle (the full 1040-row frame reads out in 5 ms)
 
 
