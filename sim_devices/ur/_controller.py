@@ -193,6 +193,11 @@ class URController:
         self.in_int = [0] * 48
         self.in_double = [0.0] * 48
         self.input_seq = 0
+        # The newest input package a control script has acted on: a script started after another one
+        # acts only on packages newer than that, so the stop command (255) that ended the previous script
+        # is not taken again by the new one (a real controller takes far longer to start a program than
+        # the client takes to clear the command register; the twin starts it within a cycle).
+        self.handled_input_seq = -1
         self.runtime_state = RUNTIME_STOPPED
         self.robot_mode = ROBOT_MODE_RUNNING
         self.safety_mode = SAFETY_MODE_NORMAL

@@ -120,7 +120,8 @@ class ControlScript:
         self._write_async_progress(-1)  # reset_async_progress()
         self._signal_ready()
         executing = False
-        seen = -1
+        with c.changed:
+            seen = c.handled_input_seq
         try:
             while self.alive:
                 with c.changed:
@@ -128,7 +129,7 @@ class ControlScript:
                         c.changed.wait(0.05)
                     if not self.alive:
                         break
-                    seen = c.input_seq
+                    seen = c.handled_input_seq = c.input_seq
                     cmd = self._in_int(0)
                 if cmd in REALTIME_COMMANDS:
                     keep = self._process(cmd)
