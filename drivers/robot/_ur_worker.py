@@ -374,7 +374,10 @@ class Session:
             if (seen_running or status.operationId() != op_before) and not running:
                 return float(receive.getTimestamp())
             if receive.getRuntimeState() != RUNTIME_PLAYING:
-                raise Failure("program_stopped", operation, "the control script stopped during the move")
+                # A safety stop also stops the script; its bits may have come with a package newer than the
+                # one read above, so ask again before calling it a plain stop of the script.
+                raise self._safety_error(operation) or Failure("program_stopped", operation,
+                                                               "the control script stopped during the move")
             if time.monotonic() > deadline:
                 try:
                     self.do_stop(2.0)
