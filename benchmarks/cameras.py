@@ -18,9 +18,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from drivers.camera import create_triplet
 from sim_devices._transforms import euler_to_matrix, make_transform
-from sim_devices.camera_twin import CameraFileTwin
-from sim_devices.optics import OpticalBench
-from sim_devices.renderer import Renderer
+from sim_devices.camera import CameraFileTwin, OpticalBench, Renderer
 from sim_devices.world import World, WorldConfig
 
 POSE = make_transform(euler_to_matrix(*np.radians([0.5, -0.3, 0.8])), [0.035, 0.020, 0.050])

@@ -50,8 +50,8 @@ class Bench:
     """The cell, the robot, the cameras and the truth, with the steps every measurement shares."""
 
     def __init__(self, directory: Path, seed: int, rate: float, optics: str) -> None:
+        from sim_devices.camera import IDEAL_OPTICS
         from sim_devices.cell import SimCell
-        from sim_devices.optics import IDEAL_OPTICS
         from sim_devices.world import EXACT_MOUNTS
 
         config = {"world": EXACT_MOUNTS}

@@ -87,8 +87,7 @@ class CellTwin:
 
     # ----------------------------------------------------------------------------- the twins
     def _cameras(self) -> Any:
-        from sim_devices.camera_twin import CameraFileTwin
-        from sim_devices.optics import OpticalBench
+        from sim_devices.camera import CameraFileTwin, OpticalBench
 
         bench = OpticalBench(self.world, self.settings.get("optics"))
         return CameraFileTwin(self.world, bench, self.settings["frames"], stream=self.settings.get("stream"),

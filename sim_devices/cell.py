@@ -40,9 +40,9 @@ import yaml
 from sim_devices._config import checked_fields
 from sim_devices._process import TwinProcess, TwinProcessError
 from sim_devices._transforms import invert, matrix_to_pose6
+from sim_devices.camera import OpticalBench
 from sim_devices.control import ControlClient, ControlServer, dispatch
 from sim_devices.faults import FaultKind, fault_kind
-from sim_devices.optics import OpticalBench
 from sim_devices.world import Axis, World, WorldConfig
 
 UR_PORTS = (30004, 29999, 30003)
@@ -101,9 +101,8 @@ class CellConfig:
 
     def check(self) -> None:
         """Build every twin's settings once, so a bad key is one ``ValueError`` before any process starts."""
-        from sim_devices.camera_stream import StreamConfig
+        from sim_devices.camera import OpticsConfig, StreamConfig
         from sim_devices.interferometer import InterferometerTwinConfig
-        from sim_devices.optics import OpticsConfig
         from sim_devices.rotary_table import RotaryTableTwinConfig
         from sim_devices.ur import URTwinConfig
 

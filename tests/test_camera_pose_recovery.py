@@ -17,9 +17,7 @@ if not hasattr(vision, "locate_cross") or not hasattr(pose, "solve_pose"):
 
 from drivers.camera import create_triplet  # noqa: E402
 from sim_devices._transforms import euler_to_matrix, make_transform, matrix_to_euler  # noqa: E402
-from sim_devices.camera_twin import CameraFileTwin  # noqa: E402
-from sim_devices.optics import OpticalBench  # noqa: E402
-from sim_devices.renderer import Renderer  # noqa: E402
+from sim_devices.camera import CameraFileTwin, OpticalBench, Renderer  # noqa: E402
 from sim_devices.world import World, WorldConfig  # noqa: E402
 
 TRANSLATION_BOUND = 200e-6  # m

@@ -6,8 +6,7 @@ import pytest
 
 from drivers import DeviceConnectionError, DeviceTimeout, SettingsError
 from drivers.camera import GrabFailed, PylonCamera, PylonSettings, Roi, create, create_triplet
-from sim_devices.camera_twin import CameraFileTwin
-from sim_devices.optics import OpticalBench
+from sim_devices.camera import CameraFileTwin, OpticalBench
 from sim_devices.world import World, WorldConfig
 
 SERIALS = {"x": "0815-0000", "y": "0815-0001", "z": "0815-0002"}

@@ -18,9 +18,8 @@ from drivers.robot import MotionEnvelope
 from drivers.robot import create as create_robot
 from instrument.pose import Geometry
 from instrument.stream import PoseTracker, estimate_clock_offset
+from sim_devices.camera import IDEAL_OPTICS, OpticalBench, Renderer
 from sim_devices.cell import SimCell
-from sim_devices.optics import IDEAL_OPTICS, OpticalBench
-from sim_devices.renderer import Renderer
 from sim_devices.trajectory import TrajectoryLog, true_poses_in_m
 from sim_devices.world import EXACT_MOUNTS, World, WorldConfig
 

@@ -8,9 +8,8 @@ import pytest
 
 from drivers import DeviceConnectionError, DeviceTimeout
 from drivers.camera import Camera, CameraTriplet, GrabFailed, Roi, TriggeredCamera, create
-from sim_devices.camera_twin import CameraFileTwin, SimCamera
+from sim_devices.camera import CameraFileTwin, OpticalBench, SimCamera
 from sim_devices.faults import FaultKind, FaultPlan
-from sim_devices.optics import OpticalBench
 from sim_devices.world import World, WorldConfig
 
 

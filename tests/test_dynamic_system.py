@@ -18,8 +18,8 @@ import yaml
 
 from procedures._api import open_engine
 from procedures._run_state import RunState
+from sim_devices.camera import IDEAL_OPTICS
 from sim_devices.cell import SimCell
-from sim_devices.optics import IDEAL_OPTICS
 from sim_devices.world import EXACT_MOUNTS
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]

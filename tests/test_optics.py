@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from sim_devices.optics import AXIS_NAMES, OpticalBench, OpticsConfig
+from sim_devices.camera import AXIS_NAMES, OpticalBench, OpticsConfig
 from sim_devices.world import World, WorldConfig
 
 AXIS = {"x": 0, "y": 1, "z": 2}

@@ -6,8 +6,7 @@ import numpy as np
 import pytest
 
 from sim_devices._transforms import euler_to_matrix, make_transform
-from sim_devices.optics import AXIS_NAMES, OpticalBench
-from sim_devices.renderer import Renderer
+from sim_devices.camera import AXIS_NAMES, OpticalBench, Renderer
 from sim_devices.world import World, WorldConfig
 
 POSES = [

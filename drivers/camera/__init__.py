@@ -1,7 +1,7 @@
 """Cameras: the ``Camera`` interface, the settings, the pylon adapter, the triplet and the factories.
 
 ``create(settings, name=...)`` builds the adapter that ``settings.adapter`` names (``pylon``); it
-is not opened yet. The simulated in-process camera lives in ``sim_devices.camera_twin.SimCamera``
+is not opened yet. The simulated in-process camera lives in ``sim_devices.camera.SimCamera``
 (drivers never import sim_devices).
 """
 

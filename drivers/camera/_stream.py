@@ -22,7 +22,7 @@ Where the pulses come from
   ``hardware_trigger=False``: this process fires software triggers at ``rate_hz`` (host-timed).
 - **pylon's camera emulator** (``emulator_image`` set: the simulated cell): its lines never fire and
   its ``TimeStamp`` is 0, so the cell's camera twin plays the trigger line and the camera heads and
-  the emulator carries the images (``sim_devices.camera_stream``): the stream is recorded between
+  the emulator carries the images (``sim_devices.camera``): the stream is recorded between
   ``start_stream`` and ``stop()`` and replayed afterwards — the driver points each emulated camera
   at the stream's frame directory and triggers it once per frame, and reads each frame's chunk data
   (counter, timestamp) from the file the twin writes beside it. Its frames come only after

@@ -34,7 +34,7 @@ import numpy as np
 from scipy.ndimage import gaussian_filter, map_coordinates
 from scipy.special import ndtr
 
-from sim_devices.optics import AXIS_NAMES, FANS, OpticalBench
+from sim_devices.camera._optics import AXIS_NAMES, FANS, OpticalBench
 
 _SQRT_2PI = float(np.sqrt(2.0 * np.pi))
 _POOL_SLACK = 1 << 21  # extra normals in the background-noise pool: the range of window offsets

@@ -25,11 +25,11 @@ import numpy as np
 
 from drivers import DeviceConnectionError, DeviceTimeout
 from drivers.camera import Frame, GrabFailed, Roi
-from sim_devices.camera_stream import StreamConfig, StreamServer
+from sim_devices.camera._optics import AXIS_NAMES, OpticalBench
+from sim_devices.camera._renderer import Renderer
+from sim_devices.camera._stream import StreamConfig, StreamServer
 from sim_devices.control import dispatch
 from sim_devices.faults import FaultKind, FaultPlan
-from sim_devices.optics import AXIS_NAMES, OpticalBench
-from sim_devices.renderer import Renderer
 from sim_devices.world import World, WorldState, pose_record
 
 
@@ -75,7 +75,7 @@ class CameraFileTwin:
         Noise seed (default: the world's seed); the noise of frame set ``n`` (the n-th rendered,
         ``frames_written``) is seeded by ``(seed, camera, n)``.
     stream : StreamConfig or mapping, optional
-        The cameras' timing for streaming acquisition (``sim_devices.camera_stream``); its requests
+        The cameras' timing for streaming acquisition (``sim_devices.camera``); its requests
         come through ``<directory>/streams``.
     trajectories : path, optional
         The robot's dense truth (``sim_devices.trajectory``): streamed frames show the true pose of

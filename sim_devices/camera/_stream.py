@@ -52,8 +52,8 @@ import numpy as np
 
 from sim_devices._config import checked_fields
 from sim_devices._transforms import matrix_to_rotvec
-from sim_devices.optics import AXIS_NAMES, OpticalBench
-from sim_devices.renderer import Renderer
+from sim_devices.camera._optics import AXIS_NAMES, OpticalBench
+from sim_devices.camera._renderer import Renderer
 from sim_devices.trajectory import TrajectoryLog
 from sim_devices.world import World
 
