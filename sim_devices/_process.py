@@ -22,8 +22,10 @@ import multiprocessing
 import os
 import signal
 import threading
+import time
 import traceback
 from multiprocessing.connection import Connection
+from multiprocessing.connection import wait as wait_for_exits
 from multiprocessing.context import SpawnProcess
 from typing import Any
 
@@ -115,6 +117,24 @@ def _child_main(factory_path: str, kwargs: dict[str, Any], conn: Connection, par
             conn.send({"ok": True, "stopped": True})
         except (OSError, BrokenPipeError):
             pass
+
+
+def _exit_code(process: SpawnProcess, timeout: float) -> int | None:
+    """``process``'s exit code once it has ended within ``timeout`` s, else None.
+
+    ``multiprocessing`` reaps a child in whichever thread asks first (``is_alive()`` from a status
+    call, its own clean-up when another process starts); a thread whose ``waitpid`` comes second sees
+    ECHILD and gets None for a child that has ended. The code is stored by the reaping thread a moment
+    later, so an ended child's code is read again until it is there: never reported as unknown.
+    """
+    process.join(timeout)
+    code = process.exitcode
+    if code is None and process.sentinel in wait_for_exits([process.sentinel], 0):
+        deadline = time.monotonic() + 2.0
+        while code is None and time.monotonic() < deadline:
+            time.sleep(0.002)
+            code = process.exitcode
+    return code
 
 
 class TwinProcess:
@@ -220,7 +240,7 @@ class TwinProcess:
         if process.is_alive():
             process.kill()
             process.join(5.0)
-        self.exitcode = process.exitcode
+        self.exitcode = _exit_code(process, 0.0)
         if conn is not None:
             conn.close()
 
@@ -241,8 +261,7 @@ class TwinProcess:
         """The child's exit code if it has ended within ``timeout`` s (it is then reaped), else None."""
         if self._process is None:
             return self.exitcode
-        self._process.join(timeout)
-        self.exitcode = self._process.exitcode
+        self.exitcode = _exit_code(self._process, timeout)
         return self.exitcode
 
     def __enter__(self) -> TwinProcess:

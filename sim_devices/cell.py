@@ -23,6 +23,7 @@ sim`` use; ``instrument sim`` runs a ``CellHost`` in the foreground.
 
 from __future__ import annotations
 
+import os
 import shutil
 import socket
 import sys
@@ -56,10 +57,26 @@ class Stoppable(Protocol):
     def stop(self) -> None: ...
 
 
+LOOPBACK_BLOCK_ENV = "SIM_LOOPBACK_BLOCK"
+"""Environment variable naming the 127.A.B block (``"127.0.7"``) in which twins take their addresses
+(default ``127.0.0``): parallel test workers get disjoint blocks, so their cells never compete."""
+
+
+def loopback_block() -> str:
+    """The ``127.A.B`` block twins bind in (``SIM_LOOPBACK_BLOCK``, default ``127.0.0``)."""
+    block = os.environ.get(LOOPBACK_BLOCK_ENV, "127.0.0")
+    parts = block.split(".")
+    if len(parts) != 3 or parts[0] != "127" or not all(p.isdigit() and int(p) <= 255 for p in parts):
+        raise ValueError(f"{LOOPBACK_BLOCK_ENV} must be a 127.A.B loopback block, got {block!r}")
+    return block
+
+
 def free_loopback_host(first: int = 2, last: int = 254, exclude: tuple[str, ...] = ()) -> str:
-    """A 127.0.0.N address on which the fixed UR ports are free right now."""
+    """A loopback address ``<block>.N`` (``first`` ≤ N ≤ ``last``, in ``loopback_block()``) on which the
+    fixed UR ports are free right now."""
+    block = loopback_block()
     for n in range(first, last + 1):
-        host = f"127.0.0.{n}"
+        host = f"{block}.{n}"
         if host in exclude:
             continue
         sockets = []
@@ -74,7 +91,7 @@ def free_loopback_host(first: int = 2, last: int = 254, exclude: tuple[str, ...]
         finally:
             for s in sockets:
                 s.close()
-    raise RuntimeError("no loopback address with the UR ports free in 127.0.0.2-254")
+    raise RuntimeError(f"no loopback address with the UR ports free in {block}.{first}-{last}")
 
 
 @dataclass(frozen=True)
@@ -161,7 +178,11 @@ class TwinHandle:
             raise RuntimeError(str(exc)) from None
 
     def status(self) -> dict[str, Any]:
-        return {"pid": self.pid, "alive": self.alive, "exitcode": self.died, "realtime": self.realtime}
+        alive = self.alive
+        code = self.died
+        if not alive and code is None:  # ended, and the monitor has not recorded it yet: read it here
+            code = self.process.poll_exit(timeout=2.0)
+        return {"pid": self.pid, "alive": alive, "exitcode": code, "realtime": self.realtime}
 
     def stop(self) -> None:
         self.process.stop()

@@ -1,4 +1,6 @@
 import os
+import signal
+import threading
 
 import pytest
 
@@ -39,3 +41,22 @@ def test_twin_process_starts_answers_and_stops():
 def test_twin_start_failure_is_reported():
     with pytest.raises(TwinProcessError, match="refuses to start"):
         TwinProcess("tests._hosts:BrokenHost").start()
+
+
+def test_an_ended_twin_keeps_its_exit_code_when_another_thread_reaped_it_first():
+    """The cell's monitor reads a dead twin's exit code while a status call's ``is_alive()`` may reap
+    the child in another thread: the monitor's ``waitpid`` then sees ECHILD. It once stored -1 for a
+    twin killed by SIGKILL. Reproduced here exactly: the child is reaped outside multiprocessing and
+    its code stored 50 ms later, as the reaping thread does."""
+    proc = TwinProcess("tests._hosts:EchoHost", {"greeting": "hi"})
+    proc.start()
+    try:
+        child = proc._process
+        assert child is not None and child._popen is not None
+        os.kill(child.pid, signal.SIGKILL)
+        _, status = os.waitpid(child.pid, 0)  # the other thread's waitpid
+        popen = child._popen
+        threading.Timer(0.05, lambda: setattr(popen, "returncode", os.waitstatus_to_exitcode(status))).start()
+        assert proc.poll_exit(timeout=2.0) == -signal.SIGKILL
+    finally:
+        proc.stop()
