@@ -71,18 +71,21 @@ def loopback_block() -> str:
     return block
 
 
-def free_loopback_host(first: int = 2, last: int = 254, exclude: tuple[str, ...] = ()) -> str:
+def free_loopback_host(first: int = 2, last: int = 254, exclude: tuple[str, ...] = (),
+                       tcp_ports: tuple[int, ...] = UR_PORTS, udp_ports: tuple[int, ...] = ()) -> str:
     """A loopback address ``<block>.N`` (``first`` ≤ N ≤ ``last``, in ``loopback_block()``) on which the
-    fixed UR ports are free right now."""
+    fixed ports a twin binds (the UR ports by default; ``udp_ports`` for a datagram protocol) are free
+    right now."""
     block = loopback_block()
+    wanted = [(port, socket.SOCK_STREAM) for port in tcp_ports] + [(port, socket.SOCK_DGRAM) for port in udp_ports]
     for n in range(first, last + 1):
         host = f"{block}.{n}"
         if host in exclude:
             continue
         sockets = []
         try:
-            for port in UR_PORTS:
-                s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+            for port, kind in wanted:
+                s = socket.socket(socket.AF_INET, kind)
                 sockets.append(s)
                 s.bind((host, port))
             return host
@@ -91,7 +94,8 @@ def free_loopback_host(first: int = 2, last: int = 254, exclude: tuple[str, ...]
         finally:
             for s in sockets:
                 s.close()
-    raise RuntimeError(f"no loopback address with the UR ports free in {block}.{first}-{last}")
+    raise RuntimeError(f"no loopback address with ports {tcp_ports} (TCP) {udp_ports} (UDP) free in "
+                       f"{block}.{first}-{last}")
 
 
 @dataclass(frozen=True)
