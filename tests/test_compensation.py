@@ -286,3 +286,32 @@ def test_single_group_calibration_needs_no_alignment():
     model = SmoothingSplineCompensator().fit(data)
     assert model.alignment.interval is None
     assert np.abs(model.predict(np.linspace(0, 0.07, 50)) - 1e-3 * np.linspace(0, 0.07, 50)).max() < 0.5 * UM
+
+
+def _repeated_exactly(n_points: int) -> CalibrationData:
+    """Three groups × three repeats of one curve, every repeat bit-identical (a noise floor of 0:
+    what a resumed simulated cell that replayed its first session's noise once gave)."""
+    x = np.linspace(0.0, 0.07, n_points)
+    error = 2 * UM * np.sin(x / 0.07 * 2 * np.pi) + UM * np.random.default_rng(0).normal(size=x.size)
+    rows = [(x + error, x, group, np.arange(n_points)) for group in range(3) for _ in range(3)]
+    measured, reference, group, point = (np.concatenate([r[i] if i < 2 else np.broadcast_to(r[i], x.shape)
+                                                         for r in rows]) for i in range(4))
+    return CalibrationData("x", measured, reference, group.astype(int), point.astype(int))
+
+
+def test_a_zero_noise_floor_still_calibrates():
+    from instrument.compensation import calibrate
+
+    data = _repeated_exactly(15)
+    assert noise_floor(data.error, data.group, data.point) == 0.0
+    record = calibrate({"x": data})  # the GP's noise bounds were log(0): L-BFGS-B raised KeyError (-inf, -inf)
+    corrected = record.correct("x", data.measured[:15]).corrected
+    assert np.max(np.abs(corrected - data.reference[:15])) < 5 * UM
+
+
+def test_too_few_points_is_a_typed_one_line_refusal():
+    from instrument.compensation import InsufficientCalibrationData, calibrate
+
+    with pytest.raises(InsufficientCalibrationData, match=r"^x: leave-one-point-out needs at least 5 calibration "
+                                                          r"points, got 4$"):
+        calibrate({"x": _repeated_exactly(4)})

@@ -141,6 +141,9 @@ def fit_gaussian_process(x: np.ndarray, y: np.ndarray, w: np.ndarray, *, point_v
     if point_variance is None:
         noise_bounds = (np.log(var_r * 1e-8), np.log(var_r))
     else:
+        # Repeats that agree exactly (a noise floor of 0, as replayed noise gives) must not make the
+        # bounds infinite: the noise variance is then bounded below by a negligible fraction of the signal.
+        point_variance = max(float(point_variance), var_r * 1e-8)
         noise_bounds = (np.log(point_variance / 4), np.log(point_variance * 4))
     bounds = [(np.log(var_r * 1e-3), np.log(var_r * 1e3)), (np.log(step), np.log(2 * span)), noise_bounds]
     d2 = (x[:, None] - x[None, :]) ** 2

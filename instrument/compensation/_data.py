@@ -27,6 +27,11 @@ MICROMETRE = 1e-6
 MAX_ERROR_TO_RANGE = 0.25
 
 
+class InsufficientCalibrationData(ValueError):
+    """Calibration data that cannot support a fit or its held-out evaluation (too few points, no
+    repeats): the message is one line naming the component and what is missing."""
+
+
 def display_unit(component: str) -> tuple[str, float]:
     """Display unit of a component's errors.
 
@@ -243,7 +248,7 @@ def noise_floor(error: np.ndarray, *labels: np.ndarray) -> float:
     ss = np.sum((error - means[inverse]) ** 2)
     dof = np.sum(count - 1)
     if dof <= 0:
-        raise ValueError("noise floor needs repeated observations at some calibration point")
+        raise InsufficientCalibrationData("noise floor needs repeated observations at some calibration point")
     return float(np.sqrt(ss / dof))
 
 

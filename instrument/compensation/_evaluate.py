@@ -30,7 +30,13 @@ from dataclasses import dataclass, field, fields
 import numpy as np
 
 from instrument.compensation._compensators import Compensator
-from instrument.compensation._data import CalibrationData, as_data_mapping, data_noise_floor, display_unit
+from instrument.compensation._data import (
+    CalibrationData,
+    InsufficientCalibrationData,
+    as_data_mapping,
+    data_noise_floor,
+    display_unit,
+)
 
 LOPO = "leave-one-point-out"
 LOGO = "leave-one-group-out"
@@ -198,8 +204,8 @@ def evaluate(compensators: Mapping[str, Compensator] | Iterable[Compensator],
     rows, summaries = [], {}
     for component, data in as_data_mapping(calibration_data).items():
         if LOPO in schemes and data.n_points < MIN_EVALUATION_POINTS:
-            raise ValueError(f"{component}: leave-one-point-out needs at least {MIN_EVALUATION_POINTS} calibration "
-                             f"points, got {data.n_points}")
+            raise InsufficientCalibrationData(f"{component}: leave-one-point-out needs at least "
+                                              f"{MIN_EVALUATION_POINTS} calibration points, got {data.n_points}")
         floor = data_noise_floor(data)
         summaries[component] = data.summary()
         for name, compensator in named.items():
