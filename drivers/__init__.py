@@ -6,6 +6,7 @@ Shared here: the typed device errors (every one names device, operation and caus
 """
 
 from drivers._errors import (
+    ClientLibraryMissing,
     DeviceConnectionError,
     DeviceError,
     DeviceFault,
@@ -16,6 +17,7 @@ from drivers._errors import (
 from drivers._settings import SettingsError
 
 __all__ = [
+    "ClientLibraryMissing",
     "DeviceConnectionError",
     "DeviceError",
     "DeviceFault",

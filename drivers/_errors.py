@@ -48,3 +48,7 @@ class DeviceFault(DeviceError):
 
 class MotionRefused(DeviceError):
     """A motion was refused before anything was sent (outside the envelope, too fast, ...)."""
+
+
+class ClientLibraryMissing(DeviceConnectionError):
+    """The adapter's client library is not installed (its optional extra was not asked for)."""

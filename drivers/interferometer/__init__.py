@@ -9,10 +9,10 @@ as a context manager.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
+from drivers._extras import load_adapter
 from drivers._settings import SettingsUnion
-from drivers.interferometer._can import CanInterferometer
 from drivers.interferometer._feed import CanSample
 from drivers.interferometer._interface import (
     BeamInterrupted,
@@ -24,6 +24,22 @@ from drivers.interferometer._interface import (
 )
 from drivers.interferometer._layout import FrameLayout, StatusFrame, crc8_j1850, frame_crc
 from drivers.interferometer._settings import HeadOptics, InterferometerSettings, SlcanSettings, SocketcandSettings
+
+if TYPE_CHECKING:
+    from drivers.interferometer._can import CanInterferometer
+
+
+def __getattr__(name: str) -> Any:
+    if name == "CanInterferometer":
+        return _can_interferometer("interferometer", "socketcand")
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def _can_interferometer(device: str, adapter: str) -> Any:
+    """``CanInterferometer``, imported with python-can when first needed (drivers._extras)."""
+    return load_adapter("drivers.interferometer._can", "CanInterferometer", device=device, adapter=adapter,
+                        libraries=("can",), extra="interferometer")
+
 
 _SETTINGS_UNION: SettingsUnion[InterferometerSettings] = SettingsUnion(InterferometerSettings, "interferometer")
 ADAPTERS = tuple(_SETTINGS_UNION.models)
@@ -44,7 +60,9 @@ def create(settings: InterferometerSettings | Mapping[str, Any], *, name: str = 
     SettingsError
         For a mapping that is not valid settings (one line naming the adapter and the setting).
     """
-    return CanInterferometer(_SETTINGS_UNION.validate(settings, name=name), name=name)
+    checked = _SETTINGS_UNION.validate(settings, name=name)
+    interferometer: Interferometer = _can_interferometer(name, checked.adapter)(checked, name=name)
+    return interferometer
 
 
 __all__ = [

@@ -10,12 +10,11 @@ context manager.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
+from drivers._extras import load_adapter
 from drivers._settings import SettingsUnion
-from drivers.rotary_table._gcs import GcsTable
 from drivers.rotary_table._interface import CommandRefused, RotaryTable, TableFault, TableState
-from drivers.rotary_table._modbus import ModbusTable
 from drivers.rotary_table._registers import AlarmBits, Opcodes, RegisterMap, StatusBits
 from drivers.rotary_table._settings import (
     GcsSerialSettings,
@@ -24,6 +23,27 @@ from drivers.rotary_table._settings import (
     ModbusTcpSettings,
     RotaryTableSettings,
 )
+
+if TYPE_CHECKING:
+    from drivers.rotary_table._gcs import GcsTable
+    from drivers.rotary_table._modbus import ModbusTable
+
+_ADAPTER_CLASSES = {  # class name → (module, client libraries): imported when first needed (drivers._extras)
+    "GcsTable": ("drivers.rotary_table._gcs", ("serial",)),
+    "ModbusTable": ("drivers.rotary_table._modbus", ("pymodbus", "serial")),
+}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _ADAPTER_CLASSES:
+        return _adapter_class(name, "rotary_table", name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def _adapter_class(name: str, device: str, adapter: str) -> Any:
+    module, libraries = _ADAPTER_CLASSES[name]
+    return load_adapter(module, name, device=device, adapter=adapter, libraries=libraries, extra="rotary-table")
+
 
 _SETTINGS_UNION: SettingsUnion[RotaryTableSettings] = SettingsUnion(RotaryTableSettings, "rotary_table")
 ADAPTERS = tuple(_SETTINGS_UNION.models)
@@ -45,9 +65,10 @@ def create(settings: RotaryTableSettings | Mapping[str, Any], *, name: str = "ro
         For a mapping that is not valid settings (one line naming the adapter and the setting).
     """
     checked = _SETTINGS_UNION.validate(settings, name=name)
-    if isinstance(checked, GcsSerialSettings | GcsTcpSettings):
-        return GcsTable(checked, name=name)
-    return ModbusTable(checked, name=name)
+    table_class = "GcsTable" if isinstance(checked, GcsSerialSettings | GcsTcpSettings) else "ModbusTable"
+    adapter_class = _adapter_class(table_class, name, checked.adapter)
+    table: RotaryTable = adapter_class(checked, name=name)
+    return table
 
 
 __all__ = [
