@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test check lint types bench clean
+.PHONY: demo test test-fast check lint types bench clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -15,9 +15,18 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(PY) -m procedures.demo
 
+# The suite on every core: a module runs whole on one worker (its cell is started once), the longest
+# modules first (tests/conftest.py); the 15 slowest tests are listed at the end.
+WORKERS ?= auto
+PYTEST_PARALLEL := -n $(WORKERS) --dist loadfile --no-loadscope-reorder --durations=15
+
 # Lint and type checks first: a new lint or type error fails `make test` (and so CI).
 test: check
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q $(PYTEST_PARALLEL)
+
+# The unit tests only: no simulated cell, twin process, server, database or browser.
+test-fast: $(STAMP)
+	$(PY) -m pytest -q $(PYTEST_PARALLEL) -m "not integration"
 
 check: lint types
 

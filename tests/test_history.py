@@ -109,7 +109,8 @@ def test_the_web_views_robot_history_groups_by_serial_and_flags_the_same_change(
         reader.close()
 
 
-def test_runs_is_an_aligned_table_with_filters(runs_dir, capsys):
+def test_runs_is_an_aligned_table_with_filters(runs_dir, capsys, monkeypatch):
+    monkeypatch.setenv("COLUMNS", "200")  # a wide terminal: the columns, not the cut to an 80-column one
     runs, ids = runs_dir
     assert main(["runs", "--runs-dir", str(runs)]) == 0
     lines = capsys.readouterr().out.splitlines()

@@ -1,0 +1,94 @@
+"""Suite-wide set-up: the order modules run in, which are integration tests, a loopback block per
+pytest-xdist worker, and per-test CPU on request.
+
+``make test`` runs the suite on every core (``pytest -n auto --dist loadfile``: a module runs whole
+on one worker, so its module-scoped cell is started once). Modules are handed out longest first
+(``LONGEST_FIRST``, from measured durations), so the longest never starts last and the workers end
+together. ``make test-fast`` leaves out the integration tests (``INTEGRATION``: modules that start
+a simulated cell, twin processes, a server, a database or a browser; every ``slow`` test too).
+
+Under ``pytest -n N`` every worker (``gw0``, ``gw1``, …) binds its twins in a 127.0.B block of its
+own (``SIM_LOOPBACK_BLOCK``; the UR twin's ports are fixed, so two cells need two addresses), so
+workers never compete for an address. Temporary folders are per worker already (pytest's
+``tmp_path`` lives under ``basetemp/popen-gwN``), and every cell, twin and server is started and
+stopped by a fixture.
+
+``SUITE_RESOURCES=FILE`` appends one JSON line per test phase (wall and CPU seconds of this process
+and of its reaped children) to FILE: where the suite's time and CPU go (``make test-profile``).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import resource
+import time
+
+import pytest
+
+from sim_devices.cell import LOOPBACK_BLOCK_ENV
+
+# Module → seconds it took alone on the idle 2-core VM (serial run); modules not listed take less than
+# ~15 s and follow in collection order. Only the order matters: a wrong figure costs balance, not results.
+LONGEST_FIRST = {
+    "test_system_sim.py": 215, "test_fault_matrix.py": 135, "test_serve_browser.py": 120, "test_kill_resume.py": 80,
+    "test_dynamic_system.py": 60, "test_serve_opcua.py": 60, "test_cell.py": 55, "test_results_data.py": 35,
+    "test_fuzz_inputs.py": 26, "test_world_race.py": 20, "test_uncertainty_coverage.py": 20,
+    "test_robot_isolation.py": 20, "test_ur_twin.py": 20, "test_camera_stream.py": 20, "test_robot_dynamic.py": 20,
+    "test_store_postgres.py": 18, "test_run_lock.py": 15, "test_rotary_drivers.py": 15,
+}
+# Modules that start a simulated cell, twin processes, a server, a database or a browser.
+INTEGRATION = {
+    "test_camera_stream.py", "test_cell.py", "test_cli_run_output.py", "test_device_settings.py",
+    "test_dynamic_procedures.py", "test_dynamic_system.py", "test_fault_matrix.py", "test_faults_and_process.py",
+    "test_fuzz_inputs.py", "test_interferometer_can.py", "test_interferometer_timing.py", "test_kill_resume.py",
+    "test_procedures_hostile_inputs.py", "test_pty_relay.py", "test_robot_dynamic.py", "test_robot_isolation.py",
+    "test_robot_ur.py", "test_rotary_drivers.py", "test_rotary_modbus.py", "test_rotary_pipython.py",
+    "test_run_lock.py", "test_serve_browser.py", "test_serve_opcua.py", "test_store_postgres.py",
+    "test_system_sim.py", "test_ur_twin.py", "test_wire_conventions.py", "test_world.py", "test_world_race.py",
+}
+FIRST_WORKER_BLOCK = 10  # 127.0.10, 127.0.11, …: clear of the 127.0.0 block a developer's own cell uses
+
+
+def _worker_index() -> int | None:
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "")  # "gw3" in a worker, unset otherwise
+    return int(worker[2:]) if worker.startswith("gw") and worker[2:].isdigit() else None
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    index = _worker_index()
+    if index is not None:
+        base = os.environ.get(LOOPBACK_BLOCK_ENV, "127.0.0").split(".")
+        third = int(base[2]) if len(base) == 3 and base[2].isdigit() else 0
+        os.environ[LOOPBACK_BLOCK_ENV] = f"127.0.{third + FIRST_WORKER_BLOCK + index}"
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    integration = pytest.mark.integration
+    for item in items:
+        if item.path.name in INTEGRATION or item.get_closest_marker("slow"):
+            item.add_marker(integration)
+    # A stable sort: within a module, and among the short modules, collection order stays.
+    items.sort(key=lambda item: -LONGEST_FIRST.get(item.path.name, 0))
+
+
+def _cpu_seconds() -> tuple[float, float]:
+    own = resource.getrusage(resource.RUSAGE_SELF)
+    children = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime, children.ru_utime + children.ru_stime
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None):
+    path = os.environ.get("SUITE_RESOURCES")
+    if not path:
+        yield
+        return
+    wall, (own, children) = time.monotonic(), _cpu_seconds()
+    yield
+    own_after, children_after = _cpu_seconds()
+    record = {"test": item.nodeid, "worker": os.environ.get("PYTEST_XDIST_WORKER", "main"),
+              "wall": round(time.monotonic() - wall, 3), "cpu_self": round(own_after - own, 3),
+              "cpu_children": round(children_after - children, 3)}
+    with open(path, "a", encoding="utf-8") as handle:
+        handle.write(json.dumps(record) + "\n")
