@@ -208,6 +208,10 @@ class CellHost:
     config : mapping, optional
         Per-twin settings (``CellConfig``): ``world``, ``optics``, ``robot``, ``rotary_table``,
         ``interferometer``. Checked when the cell starts (a bad setting is a ``ValueError``).
+    session : int
+        Which start of this cell this is for the run it serves (0 the first): the same physics (true
+        geometry, mounts, biases: from ``seed``) with every noise drawn anew, as a real cell started
+        again has (``WorldConfig.session``). The station file and the truth log record it.
 
     After ``start()``: ``world`` (the supervisor's view of the shared ``World``), ``bench`` (the
     ``OpticalBench``, as the camera process builds it) and one ``TwinHandle`` per twin process,
@@ -215,9 +219,10 @@ class CellHost:
     """
 
     def __init__(self, directory: str, seed: int = 0, robot_host: str | None = None, time_scale: float = 1.0,
-                 config: Mapping[str, Any] | None = None) -> None:
+                 config: Mapping[str, Any] | None = None, session: int = 0) -> None:
         self.directory = Path(directory)
         self.seed = int(seed)
+        self.session = int(session)
         self.robot_host = robot_host
         self.time_scale = float(time_scale)
         self.config = dict(config or {})
@@ -299,7 +304,7 @@ class CellHost:
         self.directory.mkdir(parents=True, exist_ok=True)
         truth_path = self.directory / "truth.jsonl"
         trajectories = self.directory / "trajectories"  # the robot's dense truth (sim_devices.trajectory)
-        world_section = {**config.world, "seed": self.seed}
+        world_section = {**config.world, "seed": self.seed, "session": self.session}
         self._world = world = World(WorldConfig.from_dict(world_section), truth_path=truth_path)
         self._stopping.clear()
         try:
@@ -558,7 +563,7 @@ class CellHost:
             },
             "calibration": {"record": None},
             "simulation": {"control": dict(self.endpoints["control"]), "truth_log": self.endpoints["truth_log"],
-                           "seed": self.seed},
+                           "seed": self.seed, "session": self.session},
         }
 
     def write_station(self) -> Path:
@@ -581,7 +586,8 @@ class SimCell:
     """
 
     def __init__(self, seed: int = 0, directory: str | Path | None = None, robot_host: str | None = None,
-                 time_scale: float = 1.0, config: Mapping[str, Any] | None = None, start_timeout: float = 60.0):
+                 time_scale: float = 1.0, config: Mapping[str, Any] | None = None, start_timeout: float = 60.0,
+                 session: int = 0):
         self._tmp: tempfile.TemporaryDirectory[str] | None = None
         if directory is None:
             self._tmp = tempfile.TemporaryDirectory(prefix="simcell-")
@@ -590,7 +596,7 @@ class SimCell:
         self._process = TwinProcess(
             "sim_devices.cell:CellHost",
             {"directory": str(self.directory), "seed": seed, "robot_host": robot_host, "time_scale": time_scale,
-             "config": dict(config or {})},
+             "config": dict(config or {}), "session": session},
             start_timeout=start_timeout, call_timeout=30.0,
         )
         self.endpoints: dict[str, Any] = {}

@@ -72,8 +72,13 @@ EXACT_MOUNTS: dict[str, Any] = {"kinematics": {"opr_mount_translation_std": 0.0,
 
 @dataclass
 class WorldConfig:
+    """``seed`` draws the cell's true constants (geometry, mounts, biases) and its noise; ``session``
+    (0, 1, 2 …) draws the noise anew: a cell started again for the same run (a resume) has the same
+    physics and fresh noise, as a real cell has. Session 0 is the noise of a cell that gives no session."""
+
     seed: int = 0
     kinematics: KinematicsConfig = field(default_factory=KinematicsConfig)
+    session: int = 0
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any] | None) -> WorldConfig:
@@ -81,7 +86,17 @@ class WorldConfig:
         kinematics = KinematicsConfig(
             **checked_fields(KinematicsConfig, data.get("kinematics"), "world config kinematics")
         )
-        return cls(seed=int(data.get("seed", 0)), kinematics=kinematics)
+        session = int(data.get("session", 0))
+        if session < 0:
+            raise ValueError(f"world config: session must be ≥ 0, got {session}")
+        return cls(seed=int(data.get("seed", 0)), kinematics=kinematics, session=session)
+
+
+def session_seed(seed: int, session: int, stream: str) -> list[int]:
+    """The seed sequence of noise ``stream`` in ``session`` of the cell seeded ``seed`` (session 0:
+    ``[seed, crc32(stream)]``, as every stream was before sessions existed)."""
+    base = [int(seed), zlib.crc32(stream.encode())]
+    return base if session == 0 else [*base, int(session)]
 
 
 @dataclass(frozen=True)
@@ -286,8 +301,14 @@ class World:
 
     # ----------------------------------------------------------------------------- randomness
     def rng(self, stream: str) -> np.random.Generator:
-        """An independent, reproducible random stream per subsystem name."""
+        """An independent, reproducible random stream per subsystem name: the cell's constants (the
+        same in every session)."""
         return np.random.default_rng([self.config.seed, zlib.crc32(stream.encode())])
+
+    def noise_rng(self, stream: str) -> np.random.Generator:
+        """The random stream of a noise process (``session_seed(seed, session, stream)``): drawn anew
+        in every session of the cell, the same as ``rng(stream)`` in session 0."""
+        return np.random.default_rng(session_seed(self.config.seed, self.config.session, stream))
 
     # ----------------------------------------------------------------------------- setters
     def set_flange_pose(self, flange_pose: np.ndarray, *, settled: bool = True, source: str = "robot") -> WorldState:
@@ -532,6 +553,7 @@ class World:
         """Nominal and true constants, for the ground-truth log and for tests."""
         return {
             "seed": self.config.seed,
+            "session": self.config.session,
             "kinematics": asdict(self.config.kinematics),
             "true_opr_mount": matrix_to_pose6(self.true_opr_mount).tolist(),
             "nominal_opr_mount": matrix_to_pose6(self.nominal_opr_mount).tolist(),

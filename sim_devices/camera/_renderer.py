@@ -96,13 +96,17 @@ class Renderer:
         Base seed; frame ``seq`` of camera ``name`` uses its own stream derived from it.
     bit_depth : 8 or 12
         Output depth: uint8 0–255 or uint16 0–4095.
+    session : int
+        The cell's session (``WorldConfig.session``): the noise is drawn anew in each; session 0 is
+        the noise of a renderer that gives none.
     """
 
-    def __init__(self, bench: OpticalBench, *, seed: int = 0, bit_depth: int = 8) -> None:
+    def __init__(self, bench: OpticalBench, *, seed: int = 0, bit_depth: int = 8, session: int = 0) -> None:
         if bit_depth not in (8, 12):
             raise ValueError(f"bit_depth must be 8 or 12, got {bit_depth!r}")
         self.bench = bench
         self.seed = int(seed)
+        self._session = [int(session)] if session else []  # appended to every noise seed of a later session
         self.bit_depth = bit_depth
         self.saturation = 255 if bit_depth == 8 else 4095
         self._background: dict[str, np.ndarray] = {}
@@ -136,7 +140,7 @@ class Renderer:
         ox, oy, w, h = (0, 0, width, height) if roi is None else (int(v) for v in roi)
         if not (0 <= ox and 0 <= oy and w > 0 and h > 0 and ox + w <= width and oy + h <= height):
             raise ValueError(f"roi {roi} does not fit the {width} x {height} sensor")
-        rng = np.random.default_rng([self.seed % 2**63, AXIS_NAMES.index(name), int(seq) % 2**63])
+        rng = np.random.default_rng([self.seed % 2**63, AXIS_NAMES.index(name), int(seq) % 2**63, *self._session])
         background = self._background_of(name)[oy:oy + h, ox:ox + w]
         if noise:
             sigma_bg = np.sqrt(cfg.read_noise**2 + cfg.conversion_gain * cfg.background_level)
@@ -201,7 +205,7 @@ class Renderer:
         size = width * height
         pool = self._noise_pool
         if pool is None or pool.size < size + _POOL_SLACK:
-            pool = np.random.default_rng([self.seed % 2**63, 0x6E6F]).standard_normal(
+            pool = np.random.default_rng([self.seed % 2**63, 0x6E6F, *self._session]).standard_normal(
                 size + _POOL_SLACK, dtype=np.float32
             )
             self._noise_pool = pool

@@ -230,7 +230,7 @@ class StreamServer:
                  config: StreamConfig) -> None:
         self.world = world
         self.bench = bench
-        self.renderer = Renderer(bench, seed=renderer_seed, bit_depth=8)
+        self.renderer = Renderer(bench, seed=renderer_seed, bit_depth=8, session=world.config.session)
         self.root = Path(root)
         self.root.mkdir(parents=True, exist_ok=True)
         self.truth = TrajectoryLog(trajectories) if trajectories is not None else None

@@ -93,7 +93,7 @@ class CameraFileTwin:
         self.directory = Path(directory)
         self.directory.mkdir(parents=True, exist_ok=True)
         seed = world.config.seed if seed is None else seed
-        self.renderer = Renderer(bench, seed=seed, bit_depth=8)
+        self.renderer = Renderer(bench, seed=seed, bit_depth=8, session=world.config.session)
         self.streams = StreamServer(world, bench, seed, self.directory / "streams",
                                     Path(trajectories) if trajectories is not None else None,
                                     stream if isinstance(stream, StreamConfig) else StreamConfig.from_dict(stream))

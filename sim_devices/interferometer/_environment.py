@@ -40,7 +40,7 @@ class EnvironmentUnit:
         self._noise = {"air_temperature": errors.air_temperature_noise, "pressure": errors.pressure_noise,
                        "humidity": errors.humidity_noise}
         self._noise.update(dict.fromkeys(MATERIAL_SENSORS, errors.material_noise))
-        self._noise_rng = world.rng("interferometer environment noise")
+        self._noise_rng = world.noise_rng("interferometer environment noise")
         self.nominal_index = _air.refractive_index(config.nominal_air_temperature_c, config.nominal_pressure_pa,
                                                    config.nominal_relative_humidity_percent, config.nominal_co2_ppm,
                                                    config.vacuum_wavelength)

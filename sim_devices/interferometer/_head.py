@@ -51,7 +51,7 @@ class InterferometerHead:
         self.scale_error = (float(config.scale_error) if config.scale_error is not None
                             else float(constants.uniform(-config.scale_error_limit, config.scale_error_limit)))
         self._align_rng = world.rng("interferometer alignment")
-        self._noise_rng = world.rng("interferometer noise")
+        self._noise_rng = world.noise_rng("interferometer noise")
         self._lock = threading.Lock()
         self._position = world.opr_in_m()[:3, 3].copy()
         world.subscribe(self._on_world)  # cache the OPR position: the feed reads it 1000 times a second

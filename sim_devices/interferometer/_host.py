@@ -62,8 +62,8 @@ class InterferometerTwin:
             self.world.truth.record("interferometer_environment", time=self.world.clock(),
                                     **self.environment_unit.truth())
             self.device = InterferometerDevice(self.head, self.environment_unit, config, self.faults,
-                                               self.world.rng("interferometer junk"),
-                                               self.world.rng("interferometer bus timing"))
+                                               self.world.noise_rng("interferometer junk"),
+                                               self.world.noise_rng("interferometer bus timing"))
             self.endpoints = {"layout": config.layout.to_dict()}
             if config.socketcand:
                 self._socketcand = SocketcandServer(config.host, config.port, config.channel, self.device.on_command,

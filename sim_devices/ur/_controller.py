@@ -71,6 +71,7 @@ from sim_devices.ur._dynamics import Structure, TruthGrid, matrix_to_quaternion_
 from sim_devices.ur._motion import Motion
 from sim_devices.ur._servo import JointServos
 from sim_devices.ur._trajectory import TrajectoryRecorder
+from sim_devices.world import session_seed
 
 # RTDE enumerations (UR RTDE guide).
 RUNTIME_STOPPED, RUNTIME_PLAYING = 1, 2
@@ -140,10 +141,11 @@ class URController:
         self.lock = threading.RLock()
         self.changed = threading.Condition(self.lock)
         self.period = float(config.control_period)
-        self._rng = np.random.default_rng([config.seed, zlib.crc32(b"ur-repeatability")])
+        session = world.config.session  # the noise is drawn anew in every session of the cell
+        self._rng = np.random.default_rng(session_seed(config.seed, session, "ur-repeatability"))
         drift = np.random.default_rng([config.seed, zlib.crc32(b"ur-thermal-drift")]).normal(size=3)
         self._drift_direction = drift / np.linalg.norm(drift)
-        self._sensor_rng = np.random.default_rng([config.seed, zlib.crc32(b"ur-sensors")])
+        self._sensor_rng = np.random.default_rng(session_seed(config.seed, session, "ur-sensors"))
         self.servos = (JointServos(config.servo_frequency, config.servo_damping, config.following_lag,
                                    config.servo_frequency_spread,
                                    np.random.default_rng([config.seed, zlib.crc32(b"ur-servos")]))
