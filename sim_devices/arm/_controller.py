@@ -237,7 +237,8 @@ class ArmController:
         self._thread = threading.Thread(target=self._run, name=f"{stream_label}-controller-cycle", daemon=True)
         self._finishing: list[MoveRun] = []
         self._finisher_wake = threading.Condition(threading.Lock())
-        self._finisher = threading.Thread(target=self._finish_loop, name=f"{stream_label}-controller-finisher", daemon=True)
+        self._finisher = threading.Thread(target=self._finish_loop, name=f"{stream_label}-controller-finisher",
+                                          daemon=True)
 
     # ----------------------------------------------------------------------------- lifecycle
     def start(self) -> None:

@@ -11,8 +11,8 @@ what a controller does when it solves a Cartesian target near its current joints
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -31,7 +31,7 @@ class SerialArm:
     ----------
     name : str
         What the arm is (for messages), e.g. ``"UR5e"``.
-    d, a, alpha : six floats each
+    d, a, alpha : six floats each (sequences or arrays)
         DH link offsets and lengths (m) and twists (rad).
     home_seed : six floats
         A comfortable configuration to start the inverse from when nothing better is known.
@@ -41,11 +41,11 @@ class SerialArm:
     """
 
     name: str
-    d: Sequence[float]
-    a: Sequence[float]
-    alpha: Sequence[float]
-    home_seed: Sequence[float]
-    theta0: Sequence[float] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    d: Any
+    a: Any
+    alpha: Any
+    home_seed: Any
+    theta0: Any = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
     _cache: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
