@@ -518,33 +518,30 @@ class IRC5:
         elif first.name in ("CirPathMode", "SyncMoveOn", "SyncMoveOff"):
             self._set_cmd(first.cmd_num)
         elif first.name in ("MoveAbsJ", "MoveJ"):
-            self._move(lambda t, q, tcp: self._joint_motion(first, t, q, tcp), [first.cmd_num])
+            self._move(self._joint_motion(first, *self._at_rest()), [first.cmd_num])
         elif first.name in ("MoveL", "MoveC", "EGMMoveL", "EGMMoveC"):
-            self._move(lambda t, q, tcp: self._path_motion(group, t, q, tcp), [c.cmd_num for c in group])
+            self._move(self._path_motion(group, *self._at_rest()), [c.cmd_num for c in group])
         else:
             raise RapidError(41000, "Instruction not supported", f"{first.name}: EGM guided motion is not modelled "
                              "by the twin")
 
+    def _at_rest(self) -> tuple[np.ndarray, np.ndarray]:
+        """The joints and TCP offset the next motion starts from (RAPID waits for a fine point first)."""
+        self._wait_zero_speed()
+        with self.arm.lock:
+            return self.arm.q.copy(), self.arm.tcp_offset.copy()
+
     def _move(self, factory: Callable[[float, np.ndarray, np.ndarray], Motion], cmd_nums: list[int]) -> None:
+        """Run one planned motion (``factory`` is cheap: the checks ran before) and wait until it is done."""
         done = threading.Event()
-        problem: list[BaseException] = []
-
-        def checked(t: float, q: np.ndarray, tcp: np.ndarray) -> Motion:
-            try:
-                return factory(t, q, tcp)
-            except BaseException as exc:
-                problem.append(exc)
-                raise
-
         self._set_cmd(cmd_nums[0])
         try:
-            self.arm.start_motion(checked, on_done=lambda _motion: done.set())
+            self.arm.start_motion(factory, on_done=lambda _motion: done.set())
         except RuntimeError:  # refused: a safety stop came first
-            if problem:
-                raise problem[0] from None
             raise _Stopped(f"motion refused in {self.ctrlstate}") from None
-        except (RapidError, _Stopped):
-            raise
+        except IKFailed:
+            raise RapidError(50050, "Position outside reach", "The position (robtarget) is outside the robot's "
+                             "working area") from None
         with self.arm.lock:
             run = self.arm.run
             if run is not None and len(cmd_nums) > 1:
@@ -600,7 +597,9 @@ class IRC5:
             raise RapidError(50050, "Position outside reach", f"axis {axis} would be outside its working range")
         return q
 
-    def _joint_motion(self, command: mp.Command, t: float, q: np.ndarray, tcp: np.ndarray) -> Motion:
+    def _joint_motion(self, command: mp.Command, q: np.ndarray,
+                      tcp: np.ndarray) -> Callable[[float, np.ndarray, np.ndarray], Motion]:
+        """The checked MoveAbsJ/MoveJ from ``q``, as a motion factory for the core."""
         speed: mp.SpeedData = command.params["speed"]
         if command.name == "MoveAbsJ":
             target_q = np.radians(command.params["joints"][:6])
@@ -618,14 +617,16 @@ class IRC5:
         limits = np.asarray(self.config.joint_speed_limits)
         moving = delta > 1e-12
         cap = float(np.min(limits[moving] * biggest / delta[moving])) if np.any(moving) else float(np.min(limits))
-        joint_speed = min(cap, biggest / duration) if duration > 0 else cap
-        return Motion("joint", t, q, tcp, kinematics=self.arm.kin, speed=max(joint_speed, 1e-6),
-                      accel=self.config.joint_acceleration, target_q=target_q)
+        joint_speed = max(min(cap, biggest / duration) if duration > 0 else cap, 1e-6)
+        return lambda t, q0, tcp0: Motion("joint", t, q0, tcp0, kinematics=self.arm.kin, speed=joint_speed,
+                                          accel=self.config.joint_acceleration, target_q=target_q)
 
-    def _path_motion(self, group: list[mp.Command], t: float, q: np.ndarray, tcp: np.ndarray) -> Motion:
+    def _path_motion(self, group: list[mp.Command], q: np.ndarray,
+                     tcp: np.ndarray) -> Callable[[float, np.ndarray, np.ndarray], Motion]:
+        """The checked MoveL/MoveC run from ``q`` (every point of it reachable), as a motion factory."""
         start = self.arm.kin.forward(q, tcp)
         if len(group) == 1 and group[0].name in ("MoveL", "EGMMoveL"):
-            return self._linear_motion(group[0], t, q, tcp, start)
+            return self._linear_motion(group[0], q, tcp, start)
         moves: list[Move] = []
         corners = [start[:3, 3]]
         for command in group:
@@ -652,10 +653,10 @@ class IRC5:
         for index, run in enumerate(plan.runs):  # every point of the path must be reachable
             for s in np.linspace(0.0, run.length, PATH_CHECK_SAMPLES):
                 q_check = self._solve(plan.pose(index, float(s)), q_check, tcp)
-        return Motion("path", t, q, tcp, kinematics=self.arm.kin, plan=plan)
+        return lambda t, q0, tcp0: Motion("path", t, q0, tcp0, kinematics=self.arm.kin, plan=plan)
 
-    def _linear_motion(self, command: mp.Command, t: float, q: np.ndarray, tcp: np.ndarray,
-                       start: np.ndarray) -> Motion:
+    def _linear_motion(self, command: mp.Command, q: np.ndarray, tcp: np.ndarray,
+                       start: np.ndarray) -> Callable[[float, np.ndarray, np.ndarray], Motion]:
         speed: mp.SpeedData = command.params["speed"]
         target = self._target(command.params["target"])
         self._solve(target, q, tcp)
@@ -672,8 +673,9 @@ class IRC5:
         for u in np.linspace(0.0, 1.0, PATH_CHECK_SAMPLES)[1:-1]:  # every point of the line must be reachable
             rot = _slerp(start[:3, :3], target[:3, :3], u)
             q_check = self._solve(make_transform(rot, start[:3, 3] + u * (target[:3, 3] - start[:3, 3])), q_check, tcp)
-        return Motion("linear", t, q, tcp, kinematics=self.arm.kin, speed=v, accel=self.config.path_acceleration,
-                      target_pose=target)
+        accel = self.config.path_acceleration
+        return lambda t, q0, tcp0: Motion("linear", t, q0, tcp0, kinematics=self.arm.kin, speed=v, accel=accel,
+                                          target_pose=target)
 
     # ----------------------------------------------------------------------------- faults
     def _fault(self, kind: Any, at_time: float | None = None) -> None:
