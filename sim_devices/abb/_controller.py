@@ -426,6 +426,10 @@ class IRC5:
             self.execution.next_index = 0
 
     def _open_program(self) -> None:
+        # motion_program_init: the command numbers start from -1 again
+        for name in ("motion_program_current_cmd_num", "motion_program_queued_cmd_num"):
+            self.set_signal(name, -1)
+        self.current_cmd_num = -1
         self.errwrite("Motion Program Begin", "Motion Program Begin")
         try:
             data = self.read_file(self.ramdisk_file("motion_program.bin"))

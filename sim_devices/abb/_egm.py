@@ -30,6 +30,7 @@ from typing import Any
 
 import numpy as np
 
+from sim_devices._transforms import invert, pose6_to_matrix
 from sim_devices.abb._kinematics import matrix_to_quaternion
 from sim_devices.arm import CycleState
 from sim_devices.faults import FaultKind, FaultPlan
@@ -147,20 +148,21 @@ class EgmStream:
         Controller cycles per packet.
     period : float
         Controller cycle (s): ``tm`` is the cycle's controller time in ms.
-    flange, state : callables
-        ``flange(q) -> 4×4`` (tool0 in base) and ``state() -> (motors_on, rapid_running)``.
+    tcp_offset, state : callables
+        ``tcp_offset() -> [x, y, z, rx, ry, rz]`` (the TCP in tool0) and ``state() -> (motors_on,
+        rapid_running)``.
     faults : FaultPlan, optional
         ``stall`` faults are taken from it: ``packets`` lost ones, or none sent for ``seconds`` (1 s).
     """
 
     def __init__(self, host: str, remote: tuple[str, int], every: int, period: float,
-                 flange: Callable[[Any], np.ndarray], state: Callable[[], tuple[bool, bool]],
+                 tcp_offset: Callable[[], Any], state: Callable[[], tuple[bool, bool]],
                  faults: FaultPlan | None = None) -> None:
         self.faults = faults
         self.remote = remote
         self.every = max(1, int(every))
         self.period = period
-        self.flange = flange
+        self.tcp_offset = tcp_offset
         self.state = state
         self.active = False
         self.seqno = 0
@@ -205,7 +207,10 @@ class EgmStream:
                 return
         f = state.fields
         q_actual, q_target = np.asarray(f["actual_q"]), np.asarray(f["target_q"])
-        actual, target = self.flange(q_actual), self.flange(q_target)
+        # tool0 from the cycle's TCP poses and the TCP offset: two small products instead of two FKs.
+        to_flange = invert(pose6_to_matrix(self.tcp_offset()))
+        actual = pose6_to_matrix(f["actual_TCP_pose"]) @ to_flange
+        target = pose6_to_matrix(f["target_TCP_pose"]) @ to_flange
         motors_on, running = self.state()
         message = encode_robot(seqno, int(round(stamp * 1000)), np.degrees(q_actual), actual[:3, 3] * 1e3,
                                matrix_to_quaternion(actual[:3, :3]), np.degrees(q_target), target[:3, 3] * 1e3,

@@ -15,7 +15,6 @@ from typing import Any
 from sim_devices.abb._config import ABBTwinConfig
 from sim_devices.abb._controller import IRC5, LOCAL_FAULTS
 from sim_devices.abb._egm import EgmStream
-from sim_devices.abb._kinematics import IRB2600
 from sim_devices.abb._rws import RwsServer
 from sim_devices.control import dispatch
 from sim_devices.faults import FaultKind, FaultPlan, fault_kind
@@ -58,7 +57,8 @@ class ABBControllerTwin:
         self.controller.arm.on_disconnect = self.rws.drop_connections
         remote = (self.config.egm_remote_host or host, self.config.egm_remote_port)
         every = max(1, round(self.config.egm_sample_rate / self.config.control_period))
-        self.egm = EgmStream(host, remote, every, self.config.control_period, IRB2600.forward, self._egm_state,
+        self.egm = EgmStream(host, remote, every, self.config.control_period, lambda: self.controller.arm.tcp_offset,
+                             self._egm_state,
                              self.faults)
         self.egm.active = True  # started at power on (EGMStreamStart in the controller's start-up routine)
         self.controller.arm.add_cycle_listener(self.egm.on_cycle)

@@ -487,6 +487,10 @@ class ArmController:
             except Exception as exc:  # never let the controller die silently
                 self.log(f"controller cycle failed: {type(exc).__name__}: {exc}")
             slot += 1
+            if behind > 0:
+                # Making up slots back to back would take the lock again at once, every time: let the
+                # finisher (and the servers) have it between two of them, or a late cycle starves them.
+                time.sleep(0)
 
     def step(self, slot: int) -> CycleState:
         """Advance to cycle ``slot``, publish its state to the listeners; returns it."""
