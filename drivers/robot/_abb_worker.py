@@ -82,7 +82,10 @@ def rotvec_from_quaternion(q: Sequence[float]) -> list[float]:
     if s < 1e-15:
         return [0.0, 0.0, 0.0]
     angle = 2.0 * math.atan2(s, w)
-    return [x / s * angle, y / s * angle, z / s * angle]
+    axis = [x / s, y / s, z / s]
+    if w < 1e-9 and max(axis, key=abs) < 0:  # a half turn: ±axis is the same rotation; the positive one, always
+        axis = [-v for v in axis]
+    return [v * angle for v in axis]
 
 
 class EgmFeed:
@@ -530,6 +533,9 @@ class Session:
                     # RAPID ran and stopped between two looks, or the EGM packets that show it are late:
                     # the first stopped packet after one that showed it running (or the newest there is).
                     after = self.egm.since(start_mark)
+                    if not after:  # no packet since the start: the stream is silent (``_fresh`` decides)
+                        time.sleep(WATCH_PERIOD)
+                        continue
                     ran = [i for i, e in enumerate(after) if e[2]]
                     stopped = [e for e in after[ran[0]:] if not e[2]] if ran else []
                     if stopped:

@@ -56,6 +56,8 @@ class ABBTwinConfig:
         RWS sessions (cookies) the controller keeps; beyond it answers 503 (an IRC5 keeps 70).
     event_log_size : int
         Entries the event log keeps (newest first, as RWS lists them).
+    event_log_page : int
+        Entries one ``GET rw/elog/0`` answers (the newest; the clients read only the first page).
     """
 
     seed: int = 0
@@ -106,6 +108,7 @@ class ABBTwinConfig:
     egm_sample_rate: float = 0.004
     max_sessions: int = 70
     event_log_size: int = 1000
+    event_log_page: int = 50
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any] | None) -> ABBTwinConfig:

@@ -195,6 +195,7 @@ class _Handler(BaseHTTPRequestHandler):
 
     def setup(self) -> None:
         super().setup()
+        self.connection.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)  # no Nagle wait on small answers
         with self.server_ref._lock:
             self.server_ref._connections.add(self.connection)
 
@@ -337,9 +338,12 @@ class _Handler(BaseHTTPRequestHandler):
             self._new_cookies = []
             for key, value in (extra or {}).items():
                 self.send_header(key, value)
-            self.end_headers()
+            # Headers and body in one write: one segment for a small answer, as a controller sends it.
+            buffer: list[bytes] = self._headers_buffer  # type: ignore[attr-defined]  # http.server's own
+            buffer.append(b"\r\n")
             if payload and status != 204:
-                self.wfile.write(payload)
+                buffer.append(payload)
+            self.flush_headers()
         except OSError:
             self.close_connection = True
 
@@ -485,7 +489,7 @@ class _Handler(BaseHTTPRequestHandler):
                       if len(parts) > 4 else "", "phstate": "valid", "pvalue": text, "quality": "good"}]
         elif parts[:2] == ["rw", "elog"] and len(parts) == 3:
             with c.lock:
-                entries = list(c.elog)
+                entries = list(c.elog[:cfg.event_log_page])  # the newest page, as RWS lists a domain
             state = [_elog_json(entry, parts[2]) for entry in entries]
         elif parts[:4] == ["rw", "motionsystem", "mechunits", "ROB_1"]:
             state = self._mechunit(parts[4:], query)
