@@ -37,7 +37,7 @@ pytest.importorskip("abb_robot_client")
 pytest.importorskip("abb_motion_program_exec")
 
 pytestmark = pytest.mark.timeout(150)
-TIME_SCALE = 5.0
+TIME_SCALE = 10.0
 SIGMA_T, SIGMA_R = 10e-6, np.radians(0.001)
 TCP = np.array([0.0, 0.0, 0.08, 0.0, 0.0, 0.0])
 REFERENCE = np.array([0.95, 0.0, 0.90 - 0.08, np.pi, 0.0, 0.0])  # the TCP at the twin's start flange pose

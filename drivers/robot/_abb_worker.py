@@ -419,7 +419,7 @@ class Session:
                 program.MoveAbsJ(self.abb.jointtarget([math.degrees(v) for v in command], NO_EXTERNAL_AXES),
                                  self.abb.speeddata(speed * 1e3, math.degrees(speed), 5000.0, 1000.0), self.abb.fine)
             else:
-                current, conf = self._current(operation)
+                current, conf = self._current(operation)  # where it is and in which configuration
                 pure = math.dist(current[:3], command[:3]) < 1e-7
                 program.MoveL(self._robtarget(command, conf), self._speed(speed, pure), self.abb.fine)
             return self._execute(operation, program, asynchronous, timeout, target_pose)
@@ -479,9 +479,11 @@ class Session:
         self.moving.set()
         try:
             done = self._watch(operation, mark, timeout)
-            failure = self._panel_failure(operation, self._panel(operation))
-            if failure is not None:
-                raise failure
+            latest = self.egm.latest()
+            if latest is None or not latest[3]:  # the motors went off: the panel says why
+                failure = self._panel_failure(operation, self._panel(operation))
+                if failure is not None:
+                    raise failure
             if self.stop_requested.is_set():
                 raise Failure("move_failed", operation, "the move was stopped (stop()) before its end")
             try:
