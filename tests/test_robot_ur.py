@@ -71,7 +71,7 @@ def test_factory_builds_a_robot_and_rejects_bad_config():
     assert isinstance(robot, URRobot) and isinstance(robot, Robot) and robot.name == "arm"
     assert robot.envelope is ENVELOPE and robot.host == "127.0.0.99"
     assert create(URRtdeSettings(host="127.0.0.98"), name="arm", envelope=ENVELOPE).host == "127.0.0.98"
-    with pytest.raises(SettingsError, match=r"^robot 'arm': unknown adapter 'kuka'; expected one of ur_rtde$"):
+    with pytest.raises(SettingsError, match=r"^robot 'arm': unknown adapter 'kuka'; expected one of ur_rtde, abb_rws$"):
         create({"adapter": "kuka"}, name="arm", envelope=ENVELOPE)
     with pytest.raises(SettingsError, match=r"^robot 'arm' \(ur_rtde\): unknown setting 'hots'; expected one of host"):
         create({"adapter": "ur_rtde", "hots": "127.0.0.2"}, name="arm", envelope=ENVELOPE)
