@@ -333,3 +333,51 @@ def test_close_leaves_no_worker(twin, robot):
     robot.close()  # twice is harmless
     robot.open()  # and it opens again
     assert robot.is_steady() in (True, False)
+
+
+ENGINE = """
+import sys, time
+import numpy as np
+from drivers.robot import MotionEnvelope, create
+envelope = MotionEnvelope.from_dict({"box_min": [0.6, -0.4, 0.5], "box_max": [1.3, 0.4, 1.2], "max_tilt": 0.6})
+robot = create({"adapter": "abb_rws", "base_url": sys.argv[1]}, envelope=envelope)
+robot.open()
+print(robot.worker_pid, flush=True)
+robot.move_linear(robot.tcp_pose() + [0.0, 0.15, 0.0, 0.0, 0.0, 0.0], speed=0.01, asynchronous=True)
+print("moving", flush=True)
+time.sleep(60)
+"""
+
+
+def test_an_engine_killed_mid_move_leaves_the_robot_stopped_and_no_worker(twin, robot):
+    """kill -9 of the engine during an asynchronous move: its worker stops RAPID and exits."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    import psutil
+
+    robot.close()  # one EGM socket per address: the engine below takes it
+    engine = subprocess.Popen([sys.executable, "-c", ENGINE, twin.endpoints["base_url"]], stdout=subprocess.PIPE,
+                              text=True, cwd=str(__import__("pathlib").Path(__file__).resolve().parents[1]))
+    try:
+        worker = int(engine.stdout.readline())
+        assert engine.stdout.readline().strip() == "moving"
+        deadline = time.monotonic() + 10
+        while not twin.call("state")["arm_moving"]:
+            assert time.monotonic() < deadline
+            time.sleep(0.02)
+        os.kill(engine.pid, signal.SIGKILL)
+        engine.wait(10)
+        deadline = time.monotonic() + 15
+        while psutil.pid_exists(worker) or twin.call("state")["arm_moving"]:
+            assert time.monotonic() < deadline, "the worker outlived its engine or the arm kept moving"
+            time.sleep(0.05)
+    finally:
+        if engine.poll() is None:
+            engine.kill()
+            engine.wait(10)
+    assert twin.call("state")["execution"] == "stopped" and twin.call("visits")[-1]["stopped"]
+    robot.open()
+    robot.move_linear(REFERENCE)
