@@ -11,20 +11,10 @@ for zero speed, close the log, write "Motion Program Complete" and stop. Every s
 module's own event log entries (``ErrWrite`` → code 80003 info, 80002 warning, 80001 error).
 
 Motion commands become motions of the shared controller core (``sim_devices.arm``), so the arm
-has the UR twin's servos, structural modes, repeatability and truth records:
-
-- consecutive ``MoveL``/``MoveC`` run as one path; a zone (``pzone_tcp`` mm) rounds the corner as
-  a blend of that radius (reduced to half the adjacent segments, as the controller reduces
-  overlapping zones), a fine point ends the run there (the arm stops, then goes on);
-- ``MoveJ``/``MoveAbsJ`` are synchronised joint moves at ``v_tcp`` along the TCP's chord, capped
-  by the axis speed limits; their zones are taken as fine points;
-- ``MoveL`` speed is ``v_tcp`` limited by ``v_ori`` (the move takes as long as the slower of the two),
-  a pure reorientation runs at ``v_ori``; the acceleration is the planner's (``path_acceleration``);
-- ``WaitTime`` waits at zero speed; ``CirPathMode``, ``SyncMoveOn/Off`` are accepted and ignored;
-  EGM guided motion (``EGMRunJoint`` …) is a RAPID error (not modelled).
-
-A target the arm cannot reach, or outside an axis limit, raises RAPID error 50050 "Position
-outside reach" before the arm moves; a degenerate circle 50063 "Circle uncertain".
+has the UR twin's servos, structural modes, repeatability and truth records; ``_planner`` turns
+them into checked motions (paths with zones, joint moves, speeds; RAPID errors 50050/50063 before
+anything moves). ``WaitTime`` waits at zero speed; ``CirPathMode``, ``SyncMoveOn/Off`` are accepted
+and ignored; EGM guided motion (``EGMRunJoint`` …) is a RAPID error (not modelled).
 
 Faults
 ------
@@ -39,7 +29,6 @@ circuits closed and motors on; ``release_safety`` leaves the controller in ``mot
 from __future__ import annotations
 
 import datetime
-import math
 import threading
 import time
 from collections.abc import Callable
@@ -48,12 +37,13 @@ from typing import Any
 
 import numpy as np
 
-from sim_devices._transforms import invert, make_transform, matrix_to_pose6, matrix_to_rotvec
+from sim_devices._transforms import invert, matrix_to_pose6
 from sim_devices.abb import _program as mp
 from sim_devices.abb._config import ABBTwinConfig
-from sim_devices.abb._kinematics import IRB2600, confdata, pose_from_abb, pose_to_abb, within_limits
+from sim_devices.abb._kinematics import IRB2600, confdata, pose_from_abb, pose_to_abb
+from sim_devices.abb._planner import Planner, RapidError, is_stop_point
 from sim_devices.abb._rapid_data import RapidValueError, format_value, parse_value, tooldata_value
-from sim_devices.arm import ArmController, IKFailed, Motion, Move, PathError, PathPlan
+from sim_devices.arm import ArmController, IKFailed, Motion
 from sim_devices.faults import FaultKind, FaultPlan
 
 CTRL_STATES = ("init", "motoroff", "motoron", "guardstop", "emergencystop", "emergencystopreset", "sysfail")
@@ -76,7 +66,6 @@ SIGNALS: dict[str, tuple[str, float]] = {  # name → (type, default) of EIO.cfg
 DEFAULT_TOOL = "[TRUE,[[0,0,0],[1,0,0,0]],[0.001,[0,0,0.001],[1,0,0,0],0,0,0]]"
 DEFAULT_WOBJ = '[FALSE,TRUE,"",[[0,0,0],[1,0,0,0]],[[0,0,0],[1,0,0,0]]]'
 DEFAULT_LOAD = "[0.001,[0,0,0.001],[1,0,0,0],0,0,0]"
-PATH_CHECK_SAMPLES = 24  # points per run at which a path's joints are solved before it starts
 
 
 class RwsError(Exception):
@@ -85,14 +74,6 @@ class RwsError(Exception):
     def __init__(self, status: int, code: int, message: str) -> None:
         super().__init__(message)
         self.status, self.code, self.message = status, code, message
-
-
-class RapidError(Exception):
-    """A RAPID execution error: its event code, title and text."""
-
-    def __init__(self, code: int, title: str, text: str) -> None:
-        super().__init__(f"{code} {title}: {text}")
-        self.code, self.title, self.text = code, title, text
 
 
 class _Stopped(Exception):
@@ -160,6 +141,7 @@ class IRC5:
         self.faults = faults
         self.lock = threading.RLock()
         self.arm = IRC5Arm(world, config, faults, self._fault)
+        self.planner = Planner(self.arm.kin, config)
         self.ctrlstate = "motoron"
         self.opmode = config.opmode
         self.speedratio = 100.0
@@ -500,7 +482,7 @@ class IRC5:
                 return
             group = [commands[index]]
             if commands[index].name in ("MoveL", "MoveC", "EGMMoveL", "EGMMoveC"):
-                while not _is_stop_point(group[-1]) and index + len(group) < len(commands) and \
+                while not is_stop_point(group[-1]) and index + len(group) < len(commands) and \
                         commands[index + len(group)].name in ("MoveL", "MoveC", "EGMMoveL", "EGMMoveC"):
                     group.append(commands[index + len(group)])
             self._check_running()
@@ -522,9 +504,9 @@ class IRC5:
         elif first.name in ("CirPathMode", "SyncMoveOn", "SyncMoveOff"):
             self._set_cmd(first.cmd_num)
         elif first.name in ("MoveAbsJ", "MoveJ"):
-            self._move(self._joint_motion(first, *self._at_rest()), [first.cmd_num])
+            self._move(self.planner.joint(first, *self._at_rest(), self._frames()), [first.cmd_num])
         elif first.name in ("MoveL", "MoveC", "EGMMoveL", "EGMMoveC"):
-            self._move(self._path_motion(group, *self._at_rest()), [c.cmd_num for c in group])
+            self._move(self.planner.path(group, *self._at_rest(), self._frames()), [c.cmd_num for c in group])
         else:
             raise RapidError(41000, "Instruction not supported", f"{first.name}: EGM guided motion is not modelled "
                              "by the twin")
@@ -534,6 +516,14 @@ class IRC5:
         self._wait_zero_speed()
         with self.arm.lock:
             return self.arm.q.copy(), self.arm.tcp_offset.copy()
+
+    def _frames(self) -> np.ndarray:
+        """The running program's work object: user frame ∘ object frame (the base frame for wobj0)."""
+        program = self.execution.program
+        if program is None:
+            return np.eye(4)
+        w = program.wobj
+        return pose_from_abb(w.uframe.trans, w.uframe.rot) @ pose_from_abb(w.oframe.trans, w.oframe.rot)
 
     def _move(self, factory: Callable[[float, np.ndarray, np.ndarray], Motion], cmd_nums: list[int]) -> None:
         """Run one planned motion (``factory`` is cheap: the checks ran before) and wait until it is done."""
@@ -577,109 +567,6 @@ class IRC5:
         while time.monotonic() < until:
             self._check_running()
             time.sleep(min(0.01, max(until - time.monotonic(), 0.0)))
-
-    # ----------------------------------------------------------------------------- motions
-    def _frames(self) -> np.ndarray:
-        """The program's work object: user frame ∘ object frame (base frame for wobj0)."""
-        program = self.execution.program
-        if program is None:
-            return np.eye(4)
-        w = program.wobj
-        return pose_from_abb(w.uframe.trans, w.uframe.rot) @ pose_from_abb(w.oframe.trans, w.oframe.rot)
-
-    def _target(self, target: mp.RobTarget) -> np.ndarray:
-        return self._frames() @ pose_from_abb(target.pose.trans, target.pose.rot)
-
-    def _solve(self, pose: np.ndarray, q_near: np.ndarray, tcp: np.ndarray) -> np.ndarray:
-        try:
-            q = self.arm.kin.inverse(pose, q_near, tcp)
-        except IKFailed:
-            raise RapidError(50050, "Position outside reach", "The position (robtarget) is outside the robot's "
-                             "working area") from None
-        axis = within_limits(q)
-        if axis is not None:
-            raise RapidError(50050, "Position outside reach", f"axis {axis} would be outside its working range")
-        return q
-
-    def _joint_motion(self, command: mp.Command, q: np.ndarray,
-                      tcp: np.ndarray) -> Callable[[float, np.ndarray, np.ndarray], Motion]:
-        """The checked MoveAbsJ/MoveJ from ``q``, as a motion factory for the core."""
-        speed: mp.SpeedData = command.params["speed"]
-        if command.name == "MoveAbsJ":
-            target_q = np.radians(command.params["joints"][:6])
-            axis = within_limits(target_q)
-            if axis is not None:
-                raise RapidError(50050, "Position outside reach", f"axis {axis} is outside its working range")
-        else:
-            target_q = self._solve(self._target(command.params["target"]), q, tcp)
-        delta = np.abs(target_q - q)
-        start, end = self.arm.kin.forward(q, tcp), self.arm.kin.forward(target_q, tcp)
-        chord = float(np.linalg.norm(end[:3, 3] - start[:3, 3]))
-        turn = float(np.linalg.norm(matrix_to_rotvec(end[:3, :3] @ start[:3, :3].T)))
-        duration = max(chord / max(speed.v_tcp * 1e-3, 1e-9), turn / max(math.radians(speed.v_ori), 1e-9))
-        biggest = float(np.max(delta))
-        limits = np.asarray(self.config.joint_speed_limits)
-        moving = delta > 1e-12
-        cap = float(np.min(limits[moving] * biggest / delta[moving])) if np.any(moving) else float(np.min(limits))
-        joint_speed = max(min(cap, biggest / duration) if duration > 0 else cap, 1e-6)
-        return lambda t, q0, tcp0: Motion("joint", t, q0, tcp0, kinematics=self.arm.kin, speed=joint_speed,
-                                          accel=self.config.joint_acceleration, target_q=target_q)
-
-    def _path_motion(self, group: list[mp.Command], q: np.ndarray,
-                     tcp: np.ndarray) -> Callable[[float, np.ndarray, np.ndarray], Motion]:
-        """The checked MoveL/MoveC run from ``q`` (every point of it reachable), as a motion factory."""
-        start = self.arm.kin.forward(q, tcp)
-        if len(group) == 1 and group[0].name in ("MoveL", "EGMMoveL"):
-            return self._linear_motion(group[0], q, tcp, start)
-        moves: list[Move] = []
-        corners = [start[:3, 3]]
-        for command in group:
-            speed: mp.SpeedData = command.params["speed"]
-            zone: mp.ZoneData = command.params["zone"]
-            target = self._target(command.params["target"])
-            via = self._target(command.params["via"]) if "via" in command.params else None
-            blend = 0.0 if _is_stop_point(command) else zone.pzone_tcp * 1e-3
-            moves.append(Move("circular" if via is not None else "linear", target, speed.v_tcp * 1e-3,
-                              self.config.path_acceleration, blend, via))
-            corners.append(target[:3, 3])
-        for i in range(len(moves) - 1):  # the controller reduces a zone to half of either neighbour
-            half = 0.5 * min(float(np.linalg.norm(corners[i + 1] - corners[i])),
-                             float(np.linalg.norm(corners[i + 2] - corners[i + 1])))
-            if moves[i].blend > half and moves[i].kind == moves[i + 1].kind == "linear":
-                moves[i].blend = half
-        try:
-            plan = PathPlan(start, moves)
-        except PathError as exc:
-            code, title = (50063, "Circle uncertain") if any(m.kind == "circular" for m in moves) else \
-                (50024, "Corner path failure")
-            raise RapidError(code, title, str(exc)) from None
-        q_check = q
-        for index, run in enumerate(plan.runs):  # every point of the path must be reachable
-            for s in np.linspace(0.0, run.length, PATH_CHECK_SAMPLES):
-                q_check = self._solve(plan.pose(index, float(s)), q_check, tcp)
-        return lambda t, q0, tcp0: Motion("path", t, q0, tcp0, kinematics=self.arm.kin, plan=plan)
-
-    def _linear_motion(self, command: mp.Command, q: np.ndarray, tcp: np.ndarray,
-                       start: np.ndarray) -> Callable[[float, np.ndarray, np.ndarray], Motion]:
-        speed: mp.SpeedData = command.params["speed"]
-        target = self._target(command.params["target"])
-        self._solve(target, q, tcp)
-        translation = float(np.linalg.norm(target[:3, 3] - start[:3, 3]))
-        rotation = float(np.linalg.norm(matrix_to_rotvec(target[:3, :3] @ start[:3, :3].T)))
-        v_ori = math.radians(max(speed.v_ori, 1e-9))
-        if translation > 1e-7:
-            v = speed.v_tcp * 1e-3
-            if rotation > 0 and rotation / v_ori > translation / v:
-                v = translation * v_ori / rotation  # the reorientation takes longer: the whole move slows
-        else:
-            v = v_ori
-        q_check = q
-        for u in np.linspace(0.0, 1.0, PATH_CHECK_SAMPLES)[1:-1]:  # every point of the line must be reachable
-            rot = _slerp(start[:3, :3], target[:3, :3], u)
-            q_check = self._solve(make_transform(rot, start[:3, 3] + u * (target[:3, 3] - start[:3, 3])), q_check, tcp)
-        accel = self.config.path_acceleration
-        return lambda t, q0, tcp0: Motion("linear", t, q0, tcp0, kinematics=self.arm.kin, speed=v, accel=accel,
-                                          target_pose=target)
 
     # ----------------------------------------------------------------------------- faults
     def _fault(self, kind: Any, at_time: float | None = None) -> None:
@@ -767,20 +654,9 @@ class IRC5:
                     **{f"arm_{k}": v for k, v in self.arm.describe().items()}}
 
 
-def _is_stop_point(command: mp.Command) -> bool:
-    zone = command.params.get("zone")
-    return zone is None or zone.finep or zone.pzone_tcp <= 0
-
-
 def _signal_text(value: float) -> str:
     return str(int(value)) if float(value).is_integer() else format(value, ".9g")
 
 
 def _shape(value: Any) -> Any:
     return [_shape(v) for v in value] if isinstance(value, list) else type(value).__name__
-
-
-def _slerp(r0: np.ndarray, r1: np.ndarray, u: float) -> np.ndarray:
-    from sim_devices._transforms import rotvec_to_matrix
-
-    return rotvec_to_matrix(u * matrix_to_rotvec(r1 @ r0.T)) @ r0
