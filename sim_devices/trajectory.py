@@ -1,6 +1,6 @@
 """The dense ground truth of the robot's motion: one binary trajectory file per move.
 
-The UR twin samples the TRUE tool motion (``sim_devices.ur._dynamics``) at ``truth_rate``
+The UR twin samples the TRUE tool motion (``sim_devices.arm`` structural modes) at ``truth_rate``
 (default 1 kHz of simulated time) from the moment a move starts until its residual vibration has
 died out (or the next move starts), and writes it to ``<cell>/trajectories/move-NNNNNN.traj``:
 

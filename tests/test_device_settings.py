@@ -20,7 +20,7 @@ import yaml
 
 from drivers.camera import PylonSettings
 from drivers.interferometer import SlcanSettings, SocketcandSettings
-from drivers.robot import URRtdeSettings
+from drivers.robot import ABBRwsSettings, URRtdeSettings
 from drivers.rotary_table import GcsSerialSettings, GcsTcpSettings, ModbusRtuSettings, ModbusTcpSettings
 from procedures._errors import ConfigError
 from procedures._loading import SCHEMA_DIR, load_station
@@ -48,7 +48,10 @@ class Adapter:
 
 ADAPTERS = [
     Adapter(URRtdeSettings, ("robot",), {"adapter": "ur_rtde", "host": "127.0.0.2"}, ("hots", "127.0.0.3"),
-            ("frequency", "fast"), "input should be a valid number", "ur_rtd", "ur_rtde"),
+            ("frequency", "fast"), "input should be a valid number", "ur_rtd", "ur_rtde, abb_rws"),
+    Adapter(ABBRwsSettings, ("robot",), {"adapter": "abb_rws", "base_url": "http://127.0.0.3:80"},
+            ("base_ulr", "http://127.0.0.3"), ("egm_port", "six"), "input should be a valid integer", "abb_rsw",
+            "ur_rtde, abb_rws"),
     Adapter(PylonSettings, ("cameras", "y"), {"adapter": "pylon", "serial": "0815-0001"}, ("exposure", 0.002),
             ("exposure_s", "long"), "input should be a valid number", "pylonn", "pylon"),
     Adapter(ModbusTcpSettings, ("rotary_table",), {"adapter": "modbus_tcp", "host": "127.0.0.1", "port": 502},
@@ -222,7 +225,7 @@ def test_the_published_schema_shows_every_adapters_fields():
         assert union["discriminator"]["propertyName"] == "adapter"
         return set(union["discriminator"]["mapping"])
 
-    assert tags(devices["robot"]) == {"ur_rtde"}
+    assert tags(devices["robot"]) == {"ur_rtde", "abb_rws"}
     assert all(tags(cameras[s]) == {"pylon"} for s in "xyz")
     assert tags(devices["rotary_table"]) == {"modbus_tcp", "modbus_rtu", "gcs_serial", "gcs_tcp"}
     assert tags(devices["interferometer"]) == {"socketcand", "slcan"}

@@ -71,7 +71,7 @@ def test_factory_builds_a_robot_and_rejects_bad_config():
     assert isinstance(robot, URRobot) and isinstance(robot, Robot) and robot.name == "arm"
     assert robot.envelope is ENVELOPE and robot.host == "127.0.0.99"
     assert create(URRtdeSettings(host="127.0.0.98"), name="arm", envelope=ENVELOPE).host == "127.0.0.98"
-    with pytest.raises(SettingsError, match=r"^robot 'arm': unknown adapter 'kuka'; expected one of ur_rtde$"):
+    with pytest.raises(SettingsError, match=r"^robot 'arm': unknown adapter 'kuka'; expected one of ur_rtde, abb_rws$"):
         create({"adapter": "kuka"}, name="arm", envelope=ENVELOPE)
     with pytest.raises(SettingsError, match=r"^robot 'arm' \(ur_rtde\): unknown setting 'hots'; expected one of host"):
         create({"adapter": "ur_rtde", "hots": "127.0.0.2"}, name="arm", envelope=ENVELOPE)
@@ -127,9 +127,10 @@ def test_move_linear_and_move_joint_blocking_and_async(robot):
 
 def test_stop_mid_move(twin, robot):
     robot.move_linear(REFERENCE)
-    robot.move_linear(REFERENCE + [0, 0, 0.2, 0, 0, 0], speed=0.05, acceleration=0.5, asynchronous=True)
+    # 20 s simulated (1 s of wall time at ×20): long enough to be caught mid-move on a loaded machine.
+    robot.move_linear(REFERENCE + [0, 0, 0.2, 0, 0, 0], speed=0.01, acceleration=0.5, asynchronous=True)
     deadline = time.monotonic() + 5
-    while robot.tcp_pose()[2] < REFERENCE[2] + 0.005:  # 4.1 s simulated: stop it early on
+    while robot.tcp_pose()[2] < REFERENCE[2] + 0.005:  # stop it early on
         assert time.monotonic() < deadline
         time.sleep(0.002)
     robot.stop(2.0)

@@ -1,8 +1,8 @@
 """Robot controllers: the ``Robot`` interface, the motion envelope, the settings and adapters.
 
 ``create(settings, name=..., envelope=...)`` builds the adapter that ``settings.adapter`` names
-(``ur_rtde``) with the station's ``MotionEnvelope``; it is not opened yet (call ``open()`` or use
-it as a context manager).
+(``ur_rtde``, ``abb_rws``) with the station's ``MotionEnvelope``; it is not opened yet (call
+``open()`` or use it as a context manager).
 """
 
 from __future__ import annotations
@@ -11,6 +11,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from drivers._settings import SettingsUnion
+from drivers.robot._abb import ABBRobot, MotorsOff, RapidExecutionError
 from drivers.robot._envelope import MotionEnvelope
 from drivers.robot._interface import (
     EmergencyStop,
@@ -21,7 +22,7 @@ from drivers.robot._interface import (
     RobotIdentity,
     RobotState,
 )
-from drivers.robot._settings import RobotSettings, URRtdeSettings
+from drivers.robot._settings import ABBRwsSettings, RobotSettings, URRtdeSettings
 from drivers.robot._ur import URRobot
 
 _SETTINGS_UNION: SettingsUnion[RobotSettings] = SettingsUnion(RobotSettings, "robot")
@@ -46,16 +47,22 @@ def create(settings: RobotSettings | Mapping[str, Any], *, name: str = "robot", 
         For a mapping that is not valid settings (one line naming the adapter and the setting).
     """
     checked = _SETTINGS_UNION.validate(settings, name=name)
+    if isinstance(checked, ABBRwsSettings):
+        return ABBRobot(checked, name=name, envelope=envelope)
     return URRobot(checked, name=name, envelope=envelope)
 
 
 __all__ = [
     "ADAPTERS",
+    "ABBRobot",
+    "ABBRwsSettings",
     "EmergencyStop",
     "MotionEnvelope",
+    "MotorsOff",
     "MoveFailed",
     "ProgramStopped",
     "ProtectiveStop",
+    "RapidExecutionError",
     "Robot",
     "RobotIdentity",
     "RobotSettings",

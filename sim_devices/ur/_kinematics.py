@@ -1,17 +1,19 @@
-"""UR5e-class kinematics for the controller twin: DH forward kinematics and a numerical inverse.
+"""UR5e-class kinematics for the controller twin: the published DH table on ``sim_devices.arm.SerialArm``.
 
 Standard Denavit–Hartenberg parameters of the UR5e as published by Universal Robots. The forward
 kinematics gives the flange (tool0) pose in the base frame; a TCP offset ``T_F_TCP`` is composed on
 the right. The inverse is a damped Newton iteration started from ``qnear`` (the current joints by
 default), so it returns the solution in the same configuration branch, which is what a controller's
-``get_inverse_kin`` does when given a near solution.
+``get_inverse_kin`` does when given a near solution. The module-level functions are the UR5e arm's
+methods, so the UR twin's code reads as before.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from sim_devices._transforms import invert, matrix_to_pose6, matrix_to_rotvec, pose6_to_matrix
+from sim_devices._transforms import matrix_to_pose6, pose6_to_matrix
+from sim_devices.arm import IKFailed, SerialArm
 
 #: UR5e DH parameters (metres, radians).
 UR5E_D = np.array([0.1625, 0.0, 0.0, 0.1333, 0.0997, 0.0996])
@@ -21,102 +23,18 @@ UR5E_ALPHA = np.array([np.pi / 2, 0.0, 0.0, np.pi / 2, -np.pi / 2, 0.0])
 #: A comfortable "elbow up, wrist down" seed used to find the start-up joints.
 HOME_SEED = np.array([np.pi, -1.9, 1.9, -1.57, -1.57, 0.0])
 
+UR5E = SerialArm("UR5e", UR5E_D, UR5E_A, UR5E_ALPHA, HOME_SEED)
 
-class IKFailed(ValueError):
-    """No joint solution reaches the pose (out of reach or singular)."""
+joint_frames = UR5E.joint_frames
+forward = UR5E.forward
+forward_pose = UR5E.forward_pose
+inverse = UR5E.inverse
+flange_from_tcp = SerialArm.flange_from_tcp
 
-
-_CA, _SA = np.cos(UR5E_ALPHA), np.sin(UR5E_ALPHA)
-
-
-def _dh_all(q) -> np.ndarray:
-    """The six DH link transforms at once (6, 4, 4): one array expression instead of six small ones."""
-    q = np.asarray(q, dtype=float)
-    ct, st = np.cos(q), np.sin(q)
-    links = np.zeros((6, 4, 4))
-    links[:, 0, 0], links[:, 0, 1], links[:, 0, 2], links[:, 0, 3] = ct, -st * _CA, st * _SA, UR5E_A * ct
-    links[:, 1, 0], links[:, 1, 1], links[:, 1, 2], links[:, 1, 3] = st, ct * _CA, -ct * _SA, UR5E_A * st
-    links[:, 2, 1], links[:, 2, 2], links[:, 2, 3] = _SA, _CA, UR5E_D
-    links[:, 3, 3] = 1.0
-    return links
-
-
-def joint_frames(q) -> list[np.ndarray]:
-    """Base-frame transforms of frames 0..6 (0 = base, 6 = flange)."""
-    frames = [np.eye(4)]
-    t = frames[0]
-    for link in _dh_all(q):
-        t = t @ link
-        frames.append(t)
-    return frames
-
-
-def forward(q, tcp_offset=None) -> np.ndarray:
-    """4×4 TCP pose in the base frame for joints ``q`` and TCP offset (UR pose, flange frame)."""
-    flange = joint_frames(q)[-1]
-    if tcp_offset is None:
-        return flange
-    return flange @ pose6_to_matrix(tcp_offset)
-
-
-def forward_pose(q, tcp_offset=None) -> np.ndarray:
-    """Like ``forward`` but returns a UR pose ``[x, y, z, rx, ry, rz]``."""
-    return matrix_to_pose6(forward(q, tcp_offset))
-
-
-def _jacobian(q, tcp: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Geometric Jacobian (6×6, [v; ω]) at the TCP, and the TCP transform."""
-    frames = joint_frames(q)
-    end = frames[-1] @ tcp
-    stacked = np.array(frames[:6])
-    z = stacked[:, :3, 2]  # joint axes (6, 3)
-    r = end[:3, 3] - stacked[:, :3, 3]  # joint origin → TCP (6, 3)
-    jac = np.empty((6, 6))
-    # z × r, written out: np.cross costs more than the rest of the Jacobian for 3-vectors.
-    jac[0] = z[:, 1] * r[:, 2] - z[:, 2] * r[:, 1]
-    jac[1] = z[:, 2] * r[:, 0] - z[:, 0] * r[:, 2]
-    jac[2] = z[:, 0] * r[:, 1] - z[:, 1] * r[:, 0]
-    jac[3:] = z.T
-    return jac, end
-
-
-def inverse(target, qnear, tcp_offset=None, *, tolerance: float = 1e-10, max_iterations: int = 100) -> np.ndarray:
-    """Joints reaching the TCP pose ``target`` (4×4 or UR pose), started from ``qnear``.
-
-    Raises ``IKFailed`` when the iteration does not converge (pose out of reach).
-    """
-    target = np.asarray(target, dtype=float)
-    target = pose6_to_matrix(target) if target.shape == (6,) else target
-    tcp = np.eye(4) if tcp_offset is None else pose6_to_matrix(tcp_offset)
-    q = np.array(qnear, dtype=float).reshape(6)
-    damping = 1e-6
-    for _ in range(max_iterations):
-        jac, end = _jacobian(q, tcp)
-        dp = target[:3, 3] - end[:3, 3]
-        dr = matrix_to_rotvec(target[:3, :3] @ end[:3, :3].T)
-        err = np.concatenate([dp, dr])
-        if np.linalg.norm(err) < tolerance:
-            return _wrap_near(q, qnear)
-        jjt = jac @ jac.T + damping * np.eye(6)
-        step = jac.T @ np.linalg.solve(jjt, err)
-        norm = np.linalg.norm(step)
-        if norm > 0.5:  # keep steps small so the iteration stays on the seed's branch
-            step *= 0.5 / norm
-        q = q + step
-    raise IKFailed(f"inverse kinematics did not converge for pose {matrix_to_pose6(target).round(6).tolist()}")
-
-
-def _wrap_near(q: np.ndarray, qnear) -> np.ndarray:
-    """Shift each joint by multiples of 2π to lie nearest ``qnear``."""
-    qnear = np.asarray(qnear, dtype=float)
-    return qnear + (q - qnear + np.pi) % (2 * np.pi) - np.pi
+__all__ = ["HOME_SEED", "UR5E", "UR5E_A", "UR5E_ALPHA", "UR5E_D", "IKFailed", "flange_from_tcp", "forward",
+           "forward_pose", "inverse", "joint_frames", "pose_trans"]
 
 
 def pose_trans(p_from, p_from_to) -> np.ndarray:
     """URScript ``pose_trans``: ``p_from ∘ p_from_to`` as a UR pose."""
     return matrix_to_pose6(pose6_to_matrix(p_from) @ pose6_to_matrix(p_from_to))
-
-
-def flange_from_tcp(tcp_pose: np.ndarray, tcp_offset) -> np.ndarray:
-    """Flange pose (4×4) from a TCP pose (4×4) and the TCP offset (UR pose)."""
-    return tcp_pose @ invert(pose6_to_matrix(tcp_offset))

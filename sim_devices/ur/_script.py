@@ -20,6 +20,7 @@ import time
 import numpy as np
 
 from sim_devices._transforms import matrix_to_pose6, pose6_to_matrix
+from sim_devices.arm import Motion as ArmMotion
 from sim_devices.faults import FaultKind
 from sim_devices.ur import _kinematics as kin
 from sim_devices.ur._controller import RUNTIME_STOPPED, URController
@@ -71,7 +72,7 @@ class ControlScript:
         self.alive = True
         self._async_wr_count = 0
         self._async_op_id = 0
-        self._async_motion: Motion | None = None
+        self._async_motion: ArmMotion | None = None
         self._stop_motion_pending = False
         self._thread = threading.Thread(target=self._run, name=f"ur-script-{name}", daemon=True)
 
@@ -306,7 +307,7 @@ class ControlScript:
             motion = self._start_path(moves, None, progress)
             c.wait_motion(motion, lambda: self.alive)
 
-    def _start_path(self, moves, on_done, progress) -> Motion:
+    def _start_path(self, moves, on_done, progress) -> ArmMotion:
         c = self.c
         plan = plan_path(c, moves)
         motion = c.start_motion(lambda t, q, tcp: Motion("path", t, q, tcp, plan=plan), on_done)

@@ -29,10 +29,10 @@ from typing import Any
 import numpy as np
 
 from sim_devices._transforms import pose6_to_matrix
+from sim_devices.arm import Move, PathError, PathPlan
 from sim_devices.ur import _kinematics as kin
 from sim_devices.ur._controller import RUNTIME_STOPPED, URController
 from sim_devices.ur._motion import Motion
-from sim_devices.ur._path import Move, PathError, PathPlan
 
 MOTIONS = {"movel", "movep", "movec"}
 QUIET = {"textmsg", "sync", "popup"}  # statements without an effect the twin models
