@@ -93,6 +93,8 @@ class AravisCamera:
         self._address: str | None = None
         self._group: ActionGroup | None = None
         self._stream_saved: dict[str, Any] | None = None
+        self._cleared: Any = None
+        self.stray_buffers = 0  # unfilled buffers Aravis returned (see _pop)
 
     # ------------------------------------------------------------------ lifecycle
     def open(self) -> None:
@@ -106,6 +108,7 @@ class AravisCamera:
         if camera is None:
             raise DeviceConnectionError(self._device, "open", f"no GigE Vision camera answers as {self.target}")
         self._camera = camera
+        self._cleared = aravis.BufferStatus.CLEARED
         self._control_lost.clear()
         try:
             device = camera.get_device()
@@ -296,6 +299,12 @@ class AravisCamera:
             left = deadline - time.monotonic()
             wait = int(max(0.0, min(left, _POP_SLICE_US / 1e6)) * 1e6)
             buffer = stream.timeout_pop_buffer(wait) if wait > 0 else stream.try_pop_buffer()
+            if buffer is not None and buffer.get_status() == self._cleared:
+                # Aravis hands back a buffer it never filled when a stray datagram on the stream socket
+                # started a block it could not size: not a frame of the camera's, so not a lost one.
+                self.stray_buffers += 1
+                stream.push_buffer(buffer)
+                continue
             if buffer is not None or left <= 0:
                 return buffer
 

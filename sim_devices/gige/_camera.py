@@ -34,6 +34,7 @@ import zlib
 from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, fields
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -208,23 +209,23 @@ class GigeCameraTwin:
                                ("OffsetY", 0), ("PixelFormat", f.PIXEL_FORMATS["Mono8"]), ("ActionSelector", 1),
                                ("TriggerMode", f.TRIGGER_MODES["Off"]), ("GevSCPD", 0)):
             r.set(f.FEATURE[feature].address, int(value))
-        for feature, value in (("ExposureTime", 1000.0), ("Gain", 0.0), ("AcquisitionFrameRate", 10.0),
-                               ("TriggerDelay", 0.0)):
-            r.set_float(f.FEATURE[feature].address, value)
+        for name, number in (("ExposureTime", 1000.0), ("Gain", 0.0), ("AcquisitionFrameRate", 10.0),
+                             ("TriggerDelay", 0.0)):
+            r.set_float(f.FEATURE[name].address, number)
         r.set_u64(f.TICK_FREQUENCY_HIGH, TICKS_PER_SECOND)
         self._update_payload()
         for name in ("Width", "Height", "OffsetX", "OffsetY"):
-            r.watch(f.FEATURE[name].address, lambda value, n=name: self._set_roi(n, value))
+            r.watch(f.FEATURE[name].address, partial(self._set_roi, name))
         r.watch(f.FEATURE["PixelFormat"].address, self._set_pixel_format)
         for name, entries in (("AcquisitionMode", f.ACQUISITION_MODES), ("TriggerSelector", f.TRIGGER_SELECTORS),
                               ("TriggerMode", f.TRIGGER_MODES), ("TriggerSource", f.TRIGGER_SOURCES),
                               ("TriggerActivation", f.TRIGGER_ACTIVATIONS)):
-            r.watch(f.FEATURE[name].address, lambda value, n=name, e=entries: self._check_entry(n, e, value))
+            r.watch(f.FEATURE[name].address, partial(self._check_entry, name, entries))
         r.watch(f.FEATURE["AcquisitionStart"].address, lambda value: self._acquisition(True))
         r.watch(f.FEATURE["AcquisitionStop"].address, lambda value: self._acquisition(False))
         r.watch(f.FEATURE["TriggerSoftware"].address, lambda value: self._software_trigger())
         for name in ("ExposureTime", "Gain", "AcquisitionFrameRate", "TriggerDelay"):
-            r.watch(f.FEATURE[name].address, lambda value, n=name: self._check_float(n))
+            r.watch(f.FEATURE[name].address, partial(self._check_float, name))
         r.watch(f.TIMESTAMP_CONTROL, self._timestamp_control)
         r.watch(f.STREAM_PACKET_SIZE, self._check_packet_size)
         r.watch(f.HEARTBEAT_TIMEOUT, self._check_heartbeat)
@@ -274,16 +275,16 @@ class GigeCameraTwin:
         if value not in entries.values():
             raise RegisterError(w.STATUS_INVALID_PARAMETER, f"{name}: no entry with value {value}")
 
-    def _check_float(self, name: str) -> None:
+    def _check_float(self, name: str, _raw: int) -> None:
         feature = f.FEATURE[name]
         value = self._float(name)
-        if not (float(feature.minimum or 0.0) <= value <= float(feature.maximum or math.inf)):  # type: ignore[arg-type]
+        if not (float(feature.minimum or 0.0) <= value <= float(feature.maximum or math.inf)):
             raise RegisterError(w.STATUS_INVALID_PARAMETER, f"{name} = {value:g} is out of range")
 
     def _check_packet_size(self, value: int) -> None:
         size = value & 0xFFFF
         feature = f.FEATURE["GevSCPSPacketSize"]
-        if not int(feature.minimum or 0) <= size <= int(feature.maximum or 0) or size % 4:  # type: ignore[call-overload]
+        if not int(feature.minimum or 0) <= size <= int(feature.maximum or 0) or size % 4:
             raise RegisterError(w.STATUS_INVALID_PARAMETER, f"packet size {size} is not served")
 
     @staticmethod

@@ -229,4 +229,5 @@ def genicam_xml(vendor: str, model: str) -> bytes:
                      + "".join(f"<pFeature>{n}</pFeature>" for n in names) + "</Category>\n")
     parts += [_node(feature) for feature in FEATURES]
     parts.append('<Port Name="Device" NameSpace="Standard"/>\n</RegisterDescription>\n')
-    return "".join(parts).encode()
+    xml = "".join(parts).encode()
+    return xml + b" " * (-len(xml) % 4)  # READMEM reads whole 4-byte words: the file ends on one

@@ -42,7 +42,7 @@ class RegisterSpace:
 
     def __init__(self, host: str, vendor: str, model: str, serial: str, version: str, mac: bytes) -> None:
         self.xml = f.genicam_xml(vendor, model)
-        self._memory = bytearray(f.XML_ADDRESS + len(self.xml) + (-len(self.xml)) % 4)
+        self._memory = bytearray(f.XML_ADDRESS + len(self.xml))
         self._memory[f.XML_ADDRESS:f.XML_ADDRESS + len(self.xml)] = self.xml
         self._writable: set[int] = set()
         self._watchers: dict[int, Callable[[int], None]] = {}
@@ -60,7 +60,9 @@ class RegisterSpace:
                                     (f.DEVICE_VERSION, version, 32), (f.MANUFACTURER_INFO, "simulated twin", 48),
                                     (f.SERIAL_NUMBER, serial, 16), (f.USER_NAME, "", 16)):
             self._put_string(address, text, size)
-        self._put_string(f.FIRST_URL, f"Local:opr_gige_twin.xml;{f.XML_ADDRESS:x};{len(self.xml):x}", 512)
+        # The URL's address and length are hexadecimal; written with 0x so that no client can read a
+        # bare "20000" as decimal (pyGigEVision 0.2.2 does).
+        self._put_string(f.FIRST_URL, f"Local:opr_gige_twin.xml;0x{f.XML_ADDRESS:x};0x{len(self.xml):x}", 512)
         self._put(f.NETWORK_INTERFACES, 1)
         self._put(f.STREAM_CHANNELS, 1)
         self._put(f.GVCP_CAPABILITY, f.CAPABILITIES)
