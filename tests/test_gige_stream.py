@@ -45,8 +45,9 @@ def test_a_line_triggered_stream_is_live_complete_and_on_each_cameras_clock(twin
                 twin.call("line_pulses", rate_hz=RATE, t0=t0, count=PULSES, line="Line0")
             first = stream.next_triple()
             assert first is not None and first.complete
-            # Live: the first triple is here while most pulses are still to come.
-            assert twins[0].call("clock")["controller_now"] < t0 + 0.5 * PULSES / RATE
+            # Live: the first triple is here before stop() (the emulator's replay gives nothing until
+            # then), and while pulses are still to come.
+            assert twins[0].call("clock")["controller_now"] < t0 + (PULSES - 1) / RATE
             triples = [first] + [stream.next_triple() for _ in range(PULSES - 1)]
             for twin in twins:
                 assert twin.call("line_stop")["fired"] == PULSES
