@@ -40,6 +40,7 @@ def _triplet(twins, **settings) -> CameraTriplet:
 def run_stream(twins, rate: float, seconds: float, roi: Roi | None) -> dict:
     """One line-triggered stream of ``seconds`` at ``rate``: what came."""
     count = max(10, int(rate * seconds))
+    before = [twin.call("stats") for twin in twins]
     with _triplet(twins, trigger_source="Line0", buffers=64) as triplet:
         stream = triplet.start_stream(rate, roi=roi, exposure_s=5e-4, hardware_trigger=True, timeout=5.0)
         with stream:
@@ -63,9 +64,15 @@ def run_stream(twins, rate: float, seconds: float, roi: Roi | None) -> dict:
         indices = {name: np.array([t.index for t in triples if name in t.timestamps]) for name in "xyz"}
     complete = sum(t.complete for t in triples)
     twin_stats = [twin.call("stats") for twin in twins]
+    # Where missing frames went: the twins (busy, memory full, or frames still queued when the stream
+    # ended), the receiving side (Aravis had no free buffer: underruns; incomplete frames: failures).
+    where = {key: sum(a[key] - b[key] for a, b in zip(twin_stats, before)) for key in ("missed", "overflow", "sent")}
+    where["queued"] = sum(a["queued"] for a in twin_stats)
+    where["underruns"] = sum(s["underruns"] for s in stats.values())
+    where["failures"] = sum(s["failures"] for s in stats.values())
     return {"rate": rate, "pulses": count, "triples": len(triples), "complete": complete,
             "missed": sum(stream.stats.missed.values()), "lost": sum(stream.stats.lost.values()),
-            "aravis": stats, "twins": twin_stats, "t0": t0, "stamps": stamps, "indices": indices}
+            "aravis": stats, "twins": twin_stats, "where": where, "t0": t0, "stamps": stamps, "indices": indices}
 
 
 def highest_rate(twins, rates, seconds, roi) -> tuple[float | None, list[dict]]:
@@ -74,8 +81,11 @@ def highest_rate(twins, rates, seconds, roi) -> tuple[float | None, list[dict]]:
         result = run_stream(twins, rate, seconds, roi)
         results.append(result)
         ok = result["complete"] == result["pulses"]
+        where = result["where"]
         print(f"    {rate:7.1f} Hz: {result['complete']}/{result['pulses']} complete triples, "
-              f"missed {result['missed']}, lost {result['lost']}")
+              f"missed {result['missed']}, lost {result['lost']} (twins: sent {where['sent']}, busy {where['missed']}, "
+              f"memory full {where['overflow']}, still queued {where['queued']}; Aravis: no buffer "
+              f"{where['underruns']}, failed {where['failures']})")
         if not ok:
             break
         best = rate
