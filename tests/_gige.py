@@ -37,31 +37,40 @@ def shared_clock(directory: Path) -> Path:
 
 @contextmanager
 def gige_twins(cameras: Sequence[str], trajectories: Path | None = None, **config: Any) -> Iterator[list[TwinProcess]]:
-    """One twin process per camera name (x, y, z), each on its own free loopback address."""
-    started: list[TwinProcess] = []
+    """One twin process per camera name (x, y, z), each on its own free loopback address; launched
+    together (their start-ups overlap), stopped by the context's end."""
     taken: list[str] = []
+    launched: list[TwinProcess] = []
+
+    def launch(camera: str) -> TwinProcess:
+        host = free_loopback_host(2, 254, exclude=tuple(taken), tcp_ports=(), udp_ports=GVCP_UDP)
+        taken.append(host)
+        twin = TwinProcess("sim_devices.gige:GigeTwinHost",
+                           {"host": host, "camera": {"camera": camera, **config}, "world": {"seed": SEED},
+                            "trajectories": None if trajectories is None else str(trajectories)},
+                           start_timeout=60.0, call_timeout=30.0, name=f"gige twin {camera}")
+        twin.launch()
+        launched.append(twin)
+        return twin
+
     try:
-        for camera in cameras:
+        pending = [(camera, launch(camera)) for camera in cameras]
+        started = []
+        for camera, twin in pending:
             for _attempt in range(5):  # another test may bind the address between the check and ours
-                host = free_loopback_host(2, 254, exclude=tuple(taken), tcp_ports=(), udp_ports=GVCP_UDP)
-                taken.append(host)
-                twin = TwinProcess("sim_devices.gige:GigeTwinHost",
-                                   {"host": host, "camera": {"camera": camera, **config}, "world": {"seed": SEED},
-                                    "trajectories": None if trajectories is None else str(trajectories)},
-                                   start_timeout=60.0, call_timeout=30.0, name=f"gige twin {camera}")
                 try:
-                    twin.start()
+                    twin.wait_started()
+                    break
                 except TwinProcessError as error:
-                    if "cannot bind" in str(error):
-                        continue
-                    raise
-                started.append(twin)
-                break
+                    if "cannot bind" not in str(error):
+                        raise
+                    twin = launch(camera)
             else:
                 raise RuntimeError(f"no free loopback address for gige twin {camera}")
+            started.append(twin)
         yield started
     finally:
-        for twin in started:
+        for twin in launched:
             twin.stop()
 
 
@@ -71,8 +80,10 @@ class Truth:
     def __init__(self) -> None:
         self.world = World(WorldConfig(seed=SEED))
         self.bench = OpticalBench(self.world)
-        self.renderers = {8: Renderer(self.bench, seed=SEED, bit_depth=8), 12: Renderer(self.bench, seed=SEED,
-                                                                                           bit_depth=12)}
+        # Primed like the twin's (one full frame first): the background-noise pool then has the twin's size.
+        self.renderers = {depth: Renderer(self.bench, seed=SEED, bit_depth=depth) for depth in (8, 12)}
+        for renderer in self.renderers.values():
+            renderer.render("x", self.world.state().opr_in_m, seq=0)
 
     def frame(self, record: dict[str, Any]) -> np.ndarray:
         """The image a frame record says was rendered (the OPR at rest: no blur), as the format carries it."""

@@ -335,6 +335,7 @@ class GigeCameraTwin:
         self.channel = StreamChannel(self.host, self.config.resend_blocks)
         self.registers.set(f.STREAM_SOURCE_PORT, self.channel.source_port)
         self._stopping.clear()
+        self._renderer(8)  # its caches built now: the first triggered frame is as fast as the others
         for target, label in ((self._serve, "gvcp"), (self._time_triggers, "triggers"), (self._produce, "frames")):
             thread = threading.Thread(target=target, name=f"gige-{self.name}-{label}", daemon=True)
             thread.start()
@@ -612,8 +613,14 @@ class GigeCameraTwin:
 
     # ------------------------------------------------------------------ frames
     def _renderer(self, bit_depth: int) -> Renderer:
+        """The renderer of ``bit_depth``, primed with one full frame: it builds its caches (background,
+        noise pool; 0.1–1 s on a busy machine) then, and its background-noise pool is sized for the full
+        sensor from the start, so a frame's noise depends on (seed, camera, seq) only, never on which
+        ROIs were rendered before (the pool's size sets where a frame's noise window may start)."""
         if bit_depth not in self._renderers:
-            self._renderers[bit_depth] = Renderer(self.bench, seed=self.world.config.seed, bit_depth=bit_depth)
+            renderer = Renderer(self.bench, seed=self.world.config.seed, bit_depth=bit_depth)
+            renderer.render(self.name, self.world.state().opr_in_m, seq=0)
+            self._renderers[bit_depth] = renderer
         return self._renderers[bit_depth]
 
     def _image(self, job: _Exposure) -> tuple[bytes, np.ndarray]:
