@@ -1,6 +1,7 @@
 """``GigeCameraTwin``: one GigE Vision camera of the sensor module, served on its own loopback address.
 
-It answers GVCP on ``host``:3956 (its own codec, ``_wire``; its own GenICam XML, ``_features``),
+It answers GVCP on ``host``:3956 (``_control``; its own codec, ``_wire``; its own GenICam XML,
+``_features``),
 exposes when triggered — software (``TriggerSoftware``), a hardware line (``Line0``/``Line1``, driven
 by ``line_pulses``: the cell's trigger generator), an action command (``Action1``: ACTION_CMD with
 the device key, group key and mask the host set), or free-running at ``AcquisitionFrameRate`` — and
@@ -26,8 +27,6 @@ import heapq
 import ipaddress
 import math
 import queue
-import select
-import socket
 import threading
 import time
 import zlib
@@ -46,12 +45,13 @@ from sim_devices.control import dispatch
 from sim_devices.gige import _features as f
 from sim_devices.gige import _wire as w
 from sim_devices.gige._channel import StreamChannel
+from sim_devices.gige._control import ControlChannel
 from sim_devices.gige._registers import RegisterError, RegisterSpace
 from sim_devices.trajectory import TrajectoryLog
 from sim_devices.world import World, pose_record
 
 SEQ_BASE = 1 << 44  # noise seeds of GigE frames: apart from the file twin's frame sets and streams
-POLL = 0.05  # s: the longest the control loop sleeps (heartbeat checks, faults ending)
+POLL = 0.05  # s: the longest the trigger timing thread sleeps
 
 
 @dataclass
@@ -181,10 +181,8 @@ class GigeCameraTwin:
         self._stopping = threading.Event()
         self._jobs: queue.Queue[_Exposure | None] = queue.Queue()
         self._threads: list[threading.Thread] = []
-        self._gvcp: socket.socket | None = None
+        self.gvcp: ControlChannel | None = None
         self.channel: StreamChannel | None = None
-        self._controller: tuple[str, int] | None = None
-        self._last_heard = 0.0
         self._acquiring = False
         self._ready_at = -math.inf
         self._next_free_run = math.inf
@@ -196,7 +194,7 @@ class GigeCameraTwin:
         self._late: tuple[float, int] = (0.0, 0)
         self._recent: deque[dict[str, Any]] = deque(maxlen=2000)
         self.counts = {"triggers": 0, "exposed": 0, "missed": 0, "overflow": 0, "sent": 0, "ignored": 0,
-                       "truth_late": 0, "discarded": 0, "control_lost": 0, "commands": 0}
+                       "truth_late": 0, "discarded": 0}
         self._init_features()
 
     # ------------------------------------------------------------------ features
@@ -325,18 +323,14 @@ class GigeCameraTwin:
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> dict[str, Any]:
         """Bind GVCP (``host``:3956) and the stream source; start serving. Returns the endpoints."""
-        gvcp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        try:
-            gvcp.bind((self.host, w.GVCP_PORT))
-        except OSError as exc:
-            gvcp.close()
-            raise OSError(f"gige twin: cannot bind GVCP {self.host}:{w.GVCP_PORT} ({exc.strerror})") from None
-        self._gvcp = gvcp
+        self.gvcp = ControlChannel(self.host, self.registers, on_resend=self._resend, on_action=self._action,
+                                   on_control_lost=self._control_lost, unresponsive=self._unresponsive)
         self.channel = StreamChannel(self.host, self.config.resend_blocks)
         self.registers.set(f.STREAM_SOURCE_PORT, self.channel.source_port)
         self._stopping.clear()
         self._renderer(8)  # its caches built now: the first triggered frame is as fast as the others
-        for target, label in ((self._serve, "gvcp"), (self._time_triggers, "triggers"), (self._produce, "frames")):
+        self.gvcp.start(self.name)
+        for target, label in ((self._time_triggers, "triggers"), (self._produce, "frames")):
             thread = threading.Thread(target=target, name=f"gige-{self.name}-{label}", daemon=True)
             thread.start()
             self._threads.append(thread)
@@ -359,9 +353,9 @@ class GigeCameraTwin:
         for thread in self._threads:
             thread.join(10.0)
         self._threads = []
-        if self._gvcp is not None:
-            self._gvcp.close()
-            self._gvcp = None
+        if self.gvcp is not None:
+            self.gvcp.stop()
+            self.gvcp = None
         if self.channel is not None:
             self.channel.close()
 
@@ -376,162 +370,32 @@ class GigeCameraTwin:
     def _unresponsive(self) -> bool:
         return time.monotonic() < self._unresponsive_until
 
-    def _serve(self) -> None:
-        gvcp = self._gvcp
-        assert gvcp is not None
-        while not self._stopping.is_set():
-            ready, _, _ = select.select([gvcp], [], [], POLL)
-            self._check_heartbeat_expiry()
-            if not ready:
-                continue
-            try:
-                datagram, sender = gvcp.recvfrom(65536)
-            except OSError:
-                continue
-            if self._unresponsive():
-                continue  # a camera that has stopped answering reads nothing either
-            try:
-                command = w.decode_command(datagram)
-            except w.MalformedPacket:
-                continue
-            reply = self._handle(command, sender)
-            if reply is not None and command.wants_ack:
-                try:
-                    gvcp.sendto(reply, sender)
-                except OSError:
-                    pass
-
-    def _check_heartbeat_expiry(self) -> None:
+    def _control_lost(self) -> None:
+        """The controlling host is gone (heartbeat expired, released, or the camera lost it): stop."""
         with self._lock:
-            if self._controller is None:
-                return
-            timeout = self.registers.get(f.HEARTBEAT_TIMEOUT) / 1000.0
-            if time.monotonic() - self._last_heard > timeout or self._unresponsive():
-                self._drop_controller()
-
-    def _drop_controller(self) -> None:
-        """The controlling host is gone (heartbeat expired, or the camera lost it): stop, forget it."""
-        self._controller = None
-        self._acquiring = False
-        self.registers.set(f.CONTROL_CHANNEL_PRIVILEGE, 0)
+            self._acquiring = False
         self.registers.set(f.STREAM_PORT, 0)
-        self.counts["control_lost"] += 1
 
-    def _handle(self, command: w.Command, sender: tuple[str, int]) -> bytes | None:
-        self.counts["commands"] += 1
-        with self._lock:
-            if self._controller == sender:
-                self._last_heard = time.monotonic()
-        handlers: dict[int, Callable[[w.Command, tuple[str, int]], bytes | None]] = {
-            w.DISCOVERY_CMD: self._discovery, w.READREG_CMD: self._read_registers,
-            w.WRITEREG_CMD: self._write_registers, w.READMEM_CMD: self._read_memory,
-            w.WRITEMEM_CMD: self._write_memory, w.PACKETRESEND_CMD: self._packet_resend,
-            w.ACTION_CMD: self._action}
-        handler = handlers.get(command.command)
-        if handler is None:
-            return w.encode_ack(command.command, command.request_id, status=w.STATUS_NOT_IMPLEMENTED)
-        return handler(command, sender)
+    def _resend(self, block_id: int, first: int, last: int) -> None:
+        if self.channel is not None:
+            self.channel.resend(block_id, first, last, self._destination())
 
-    def _discovery(self, command: w.Command, sender: tuple[str, int]) -> bytes:
-        return w.encode_ack(command.command, command.request_id, self.registers.discovery_data())
-
-    def _read_registers(self, command: w.Command, sender: tuple[str, int]) -> bytes:
-        values = []
-        for i in range(0, len(command.payload) - 3, 4):
-            address = int.from_bytes(command.payload[i:i + 4], "big")
-            try:
-                values.append(self.registers.read(address, 4))
-            except RegisterError as error:
-                return w.encode_ack(command.command, command.request_id, b"".join(values), status=error.status)
-        return w.encode_ack(command.command, command.request_id, b"".join(values))
-
-    def _may_write(self, address: int, value: int, sender: tuple[str, int]) -> int | None:
-        """None if ``sender`` may write; else the status to refuse with."""
-        with self._lock:
-            if address == f.CONTROL_CHANNEL_PRIVILEGE:
-                if self._controller not in (None, sender):
-                    return w.STATUS_ACCESS_DENIED
-                if value & (f.CCP_CONTROL | f.CCP_EXCLUSIVE):
-                    self._controller = sender
-                    self._last_heard = time.monotonic()
-                elif self._controller == sender:
-                    self._drop_controller()
-                    self.counts["control_lost"] -= 1  # a release, not a loss
-                return None
-            if self._controller != sender:
-                return w.STATUS_ACCESS_DENIED
-            return None
-
-    def _write_registers(self, command: w.Command, sender: tuple[str, int]) -> bytes:
-        written = 0
-        status = w.STATUS_SUCCESS
-        for i in range(0, len(command.payload) - 7, 8):
-            address = int.from_bytes(command.payload[i:i + 4], "big")
-            value = int.from_bytes(command.payload[i + 4:i + 8], "big")
-            refusal = self._may_write(address, value, sender)
-            if refusal is not None:
-                status = refusal
-                break
-            try:
-                self.registers.write(address, command.payload[i + 4:i + 8])
-            except RegisterError as error:
-                status = error.status
-                break
-            written += 1
-        return w.encode_ack(command.command, command.request_id, written.to_bytes(4, "big"), status=status)
-
-    def _read_memory(self, command: w.Command, sender: tuple[str, int]) -> bytes:
-        if len(command.payload) < 8:
-            return w.encode_ack(command.command, command.request_id, status=w.STATUS_INVALID_PARAMETER)
-        address = int.from_bytes(command.payload[0:4], "big")
-        count = int.from_bytes(command.payload[6:8], "big")
-        if count > w.READMEM_MAX:
-            return w.encode_ack(command.command, command.request_id, status=w.STATUS_INVALID_PARAMETER)
-        try:
-            data = self.registers.read(address, count)
-        except RegisterError as error:
-            return w.encode_ack(command.command, command.request_id, status=error.status)
-        return w.encode_ack(command.command, command.request_id, command.payload[0:4] + data)
-
-    def _write_memory(self, command: w.Command, sender: tuple[str, int]) -> bytes:
-        address = int.from_bytes(command.payload[0:4], "big")
-        data = command.payload[4:]
-        for i in range(0, len(data) - 3, 4):
-            refusal = self._may_write(address + i, int.from_bytes(data[i:i + 4], "big"), sender)
-            if refusal is not None:
-                return w.encode_ack(command.command, command.request_id, (i).to_bytes(4, "big"), status=refusal)
-        try:
-            self.registers.write(address, data)
-        except RegisterError as error:
-            return w.encode_ack(command.command, command.request_id, bytes(4), status=error.status)
-        return w.encode_ack(command.command, command.request_id, len(data).to_bytes(4, "big"))
-
-    def _packet_resend(self, command: w.Command, sender: tuple[str, int]) -> None:
-        if len(command.payload) >= 12 and self.channel is not None:
-            block_id = int.from_bytes(command.payload[2:4], "big")
-            first = int.from_bytes(command.payload[4:8], "big") & 0xFFFFFF
-            last = int.from_bytes(command.payload[8:12], "big") & 0xFFFFFF
-            self.channel.resend(block_id, first, last)
-        return None  # served on the stream channel; a resend is never acknowledged
-
-    def _action(self, command: w.Command, sender: tuple[str, int]) -> bytes:
-        payload = command.payload
-        if len(payload) < 12:
-            return w.encode_ack(command.command, command.request_id, status=w.STATUS_INVALID_PARAMETER)
+    def _action(self, flags: int, payload: bytes) -> None:
+        """ACTION_CMD: trigger ``Action1`` if the keys are this camera's (at once, or at its action time)."""
         device_key, group_key, group_mask = (int.from_bytes(payload[i:i + 4], "big") for i in (0, 4, 8))
         r = self.registers
-        if device_key == r.get(f.ACTION_DEVICE_KEY) and group_key == r.get(f.ACTION_GROUP_KEY) \
-                and group_mask & r.get(f.ACTION_GROUP_MASK):
-            when = self.controller_now()
-            if command.flags & w.FLAG_ACTION_TIME and len(payload) >= 20:
-                ticks = int.from_bytes(payload[12:20], "big")  # the camera's clock: back to the controller's
-                when = max(when, (ticks / TICKS_PER_SECOND - self.clock.offset) / (1.0 + self.clock.drift))
-                with self._lock:
-                    heapq.heappush(self._scheduled, (when, "Action1"))
-                self._wake.set()
-            else:
-                self._trigger(when, "Action1")
-        return w.encode_ack(command.command, command.request_id)
+        if device_key != r.get(f.ACTION_DEVICE_KEY) or group_key != r.get(f.ACTION_GROUP_KEY) \
+                or not group_mask & r.get(f.ACTION_GROUP_MASK):
+            return
+        when = self.controller_now()
+        if flags & w.FLAG_ACTION_TIME and len(payload) >= 20:
+            ticks = int.from_bytes(payload[12:20], "big")  # the camera's clock: back to the controller's
+            when = max(when, (ticks / TICKS_PER_SECOND - self.clock.offset) / (1.0 + self.clock.drift))
+            with self._lock:
+                heapq.heappush(self._scheduled, (when, "Action1"))
+            self._wake.set()
+        else:
+            self._trigger(when, "Action1")
 
     # ------------------------------------------------------------------ acquisition
     def _acquisition(self, on: bool) -> None:
@@ -665,12 +529,15 @@ class GigeCameraTwin:
             if self._unresponsive():
                 self.counts["discarded"] += 1
                 continue
-            destination = (str(ipaddress.IPv4Address(self.registers.get(f.STREAM_DESTINATION))),
-                           self.registers.get(f.STREAM_PORT) & 0xFFFF)
             assert self.channel is not None
-            self.channel.send_block(destination, job.block_id, ticks, f.PIXEL_FORMATS[job.pixel_format], job.roi, data,
-                                    self.registers.get(f.STREAM_PACKET_SIZE) & 0xFFFF)
+            self.channel.send_block(self._destination(), job.block_id, ticks, f.PIXEL_FORMATS[job.pixel_format],
+                                    job.roi, data, self.registers.get(f.STREAM_PACKET_SIZE) & 0xFFFF)
             self.counts["sent"] += 1
+
+    def _destination(self) -> tuple[str, int]:
+        """Where the stream goes: ``GevSCDA``:``GevSCPHostPort`` (port 0: nowhere)."""
+        return (str(ipaddress.IPv4Address(self.registers.get(f.STREAM_DESTINATION))),
+                self.registers.get(f.STREAM_PORT) & 0xFFFF)
 
     # ------------------------------------------------------------------ control (tests, the cell)
     def control(self, command: str, /, **kwargs: Any) -> Any:
@@ -682,9 +549,12 @@ class GigeCameraTwin:
 
     def stats(self) -> dict[str, Any]:
         channel = self.channel.stats.__dict__ if self.channel is not None else {}
+        gvcp = self.gvcp
         with self._lock:
-            return {**self.counts, "acquiring": self._acquiring, "controller": self._controller is not None,
-                    "queued": self._jobs.qsize(), "channel": dict(channel)}
+            return {**self.counts, "acquiring": self._acquiring, "queued": self._jobs.qsize(), "channel": dict(channel),
+                    "controller": gvcp is not None and gvcp.controller is not None,
+                    "control_lost": 0 if gvcp is None else gvcp.control_lost,
+                    "commands": 0 if gvcp is None else gvcp.commands}
 
     def frames(self, last: int = 100) -> list[dict[str, Any]]:
         """The truth of the last ``last`` frames rendered (oldest first)."""

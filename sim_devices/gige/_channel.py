@@ -127,13 +127,20 @@ class StreamChannel:
                 self.stats.send_errors += 1
             return 0
 
-    def resend(self, block_id: int, first: int, last: int) -> None:
-        """Serve a PACKETRESEND: packets ``first``…``last`` of ``block_id`` again (or unavailable)."""
+    def resend(self, block_id: int, first: int, last: int, destination: tuple[str, int]) -> None:
+        """Serve a PACKETRESEND: packets ``first``…``last`` of ``block_id`` again to where the block
+        went, or, for a block no longer kept, one PACKET_UNAVAILABLE packet per id to ``destination``
+        (the current stream destination)."""
         with self._lock:
             self.stats.resend_requests += 1
             kept = self._blocks.get(block_id)
         if kept is None:
-            return  # nowhere to send the refusal either: the block and its destination are gone
+            if destination[1] != 0:
+                for packet_id in range(first, min(last, first + 64) + 1):  # a bounded answer to any range
+                    self._send(w.gvsp_unavailable(block_id, packet_id), destination)
+                    with self._lock:
+                        self.stats.unavailable += 1
+            return
         destination, packets = kept
         last = min(last, len(packets) - 1)
         for packet_id in range(first, last + 1):
