@@ -80,6 +80,20 @@ def test_dropped_packets_are_resent_and_the_frame_is_whole(twin_x, truth):
             assert np.array_equal(frame.image, truth.frame(record_of(twin_x, frame.frame_id)))
 
 
+def test_a_frame_that_comes_after_its_grab_timed_out_is_never_the_next_grabs(twin_x, truth):
+    with AravisCamera(AravisSettings(address=twin_x.endpoints["host"], retries=0), name="x") as camera:
+        # The first frame leaves the camera 0.5 s late: its grab gives up at 0.2 s, and the second grab
+        # is waiting when it arrives. Exposed before the second trigger, it must not be taken for its frame.
+        twin_x.call("late_frames", delay=0.5, count=1)
+        with pytest.raises(DeviceTimeout):
+            camera.grab(0.2)
+        frame = camera.grab(5.0)
+        first, second = twin_x.call("frames", last=2)
+        assert frame.frame_id == second["block_id"] != first["block_id"]
+        assert camera.stray_buffers >= 1  # the late frame came during the wait and was put back
+        assert np.array_equal(frame.image, truth.frame(second))
+
+
 def test_a_camera_that_stops_answering_is_a_typed_error_then_control_is_lost():
     with gige_twins("y") as (twin,):
         camera = AravisCamera(AravisSettings(address=twin.endpoints["host"], timeout_s=1.0, retries=0), name="y")

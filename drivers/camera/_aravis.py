@@ -94,7 +94,10 @@ class AravisCamera:
         self._group: ActionGroup | None = None
         self._stream_saved: dict[str, Any] | None = None
         self._cleared: Any = None
-        self.stray_buffers = 0  # unfilled buffers Aravis returned (see _pop)
+        self.stray_buffers = 0  # buffers put back unread: unfilled, or exposed before the last trigger (_pop)
+        self._can_latch = False
+        self._tick_frequency = 1e9
+        self._not_before_ns = 0
 
     # ------------------------------------------------------------------ lifecycle
     def open(self) -> None:
@@ -117,6 +120,11 @@ class AravisCamera:
             self._address = self._device_address(device)
             if self.settings.packet_size is not None:
                 self._set_integer("GevSCPSPacketSize", self.settings.packet_size)
+            self._can_latch = all(self._has(feature) for feature in (
+                "GevTimestampControlLatch", "GevTimestampValue", "GevTimestampTickFrequency"))
+            if self._can_latch:
+                self._tick_frequency = float(self._call("read the tick frequency", "get_integer",
+                                                        "GevTimestampTickFrequency")) or 1e9
             self._apply(self._settings)
             self._arm(self.trigger_source)
             self._start()
@@ -279,6 +287,15 @@ class AravisCamera:
         elif self.trigger_source == "Action1" and self._group is not None and self._address is not None:
             self._group.ready(self._address, self._device)
 
+    def _latch(self) -> None:
+        """Note the camera's clock now: a frame stamped earlier was exposed before this call (a late
+        frame of an earlier trigger, or one the camera still had queued) and is never handed out."""
+        if not self._can_latch:
+            return
+        self._call("latch the timestamp", "execute_command", "GevTimestampControlLatch")
+        ticks = int(self._call("read the timestamp", "get_integer", "GevTimestampValue"))
+        self._not_before_ns = int(ticks * 1e9 / self._tick_frequency)
+
     def trigger(self) -> None:
         """Drop frames exposed before this call, then fire (software or action; a line fires itself)."""
         stream = self._require_stream("trigger")
@@ -287,6 +304,7 @@ class AravisCamera:
             if stale is None:
                 break
             stream.push_buffer(stale)
+        self._latch()
         self._fire()
 
     def _pop(self, timeout: float) -> Any:
@@ -299,9 +317,11 @@ class AravisCamera:
             left = deadline - time.monotonic()
             wait = int(max(0.0, min(left, _POP_SLICE_US / 1e6)) * 1e6)
             buffer = stream.timeout_pop_buffer(wait) if wait > 0 else stream.try_pop_buffer()
-            if buffer is not None and buffer.get_status() == self._cleared:
+            if buffer is not None and (buffer.get_status() == self._cleared
+                                       or int(buffer.get_timestamp()) < self._not_before_ns):
                 # Aravis hands back a buffer it never filled when a stray datagram on the stream socket
-                # started a block it could not size: not a frame of the camera's, so not a lost one.
+                # started a block it could not size; and a frame exposed before the last trigger (or
+                # the stream's start) may still come. Neither is this call's frame, nor a lost one.
                 self.stray_buffers += 1
                 stream.push_buffer(buffer)
                 continue
@@ -366,6 +386,7 @@ class AravisCamera:
         self.trigger_source = trigger_source
         self._arm(trigger_source)
         self._start()
+        self._latch()  # frames the camera exposed before (still queued, or late) are not the stream's
         return 1e9
 
     def stream_fire(self) -> None:

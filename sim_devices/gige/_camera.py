@@ -18,7 +18,8 @@ Control (``control(command, **kwargs)``, the cell's channel): ``stats``, ``frame
 truth: block id, exposure start on the controller clock, exposure, ticks, noise seq, roi, pixel
 format, true OPR pose), ``clock`` (true offset and drift), ``line_pulses`` (t0, rate_hz, count),
 ``line_stop``, and the faults ``drop_packets`` (fraction, count, seed), ``unresponsive`` (seconds;
-None: until cleared) and ``late_trigger`` (delay, count), ``clear_faults``.
+None: until cleared), ``late_trigger`` (delay, count: the exposure starts late), ``late_frames``
+(delay, count: the frame is sent late), ``clear_faults``.
 """
 
 from __future__ import annotations
@@ -192,6 +193,7 @@ class GigeCameraTwin:
         self._scheduled: list[tuple[float, str]] = []  # (controller time, source) of scheduled actions
         self._unresponsive_until = -math.inf
         self._late: tuple[float, int] = (0.0, 0)
+        self._late_frames: tuple[float, int] = (0.0, 0)
         self._recent: deque[dict[str, Any]] = deque(maxlen=2000)
         self.counts = {"triggers": 0, "exposed": 0, "missed": 0, "overflow": 0, "sent": 0, "ignored": 0,
                        "truth_late": 0, "discarded": 0}
@@ -512,6 +514,17 @@ class GigeCameraTwin:
             job = self._jobs.get()
             if job is None or self._stopping.is_set():
                 return
+            # A frame leaves the camera once it is exposed and read out, never before (a late trigger's
+            # frame comes late), and once the truth of its exposure is written.
+            read_out = job.start + job.exposure + job.roi[3] * self.config.line_time
+            while self.controller_now() < read_out:
+                if self._stopping.wait(min(POLL, max(0.0, read_out - self.controller_now()))):
+                    return
+            with self._lock:
+                held, count = self._late_frames
+                self._late_frames = (held, count - 1) if count > 0 else (0.0, 0)
+            if count > 0 and self._stopping.wait(held):
+                return
             deadline = time.monotonic() + self.config.truth_wait
             while not self._truth_known(job.start + job.exposure) and time.monotonic() < deadline:
                 if self._stopping.wait(0.002):
@@ -544,7 +557,8 @@ class GigeCameraTwin:
         commands: dict[str, Callable[..., Any]] = {
             "stats": self.stats, "frames": self.frames, "clock": self.clock_truth, "line_pulses": self.line_pulses,
             "line_stop": self.line_stop, "drop_packets": self.drop_packets, "unresponsive": self.unresponsive,
-            "late_trigger": self.late_trigger, "clear_faults": self.clear_faults, "endpoints": self.endpoints}
+            "late_trigger": self.late_trigger, "late_frames": self.late_frames, "clear_faults": self.clear_faults,
+            "endpoints": self.endpoints}
         return dispatch(commands, command, kwargs, "gige twin")
 
     def stats(self) -> dict[str, Any]:
@@ -594,9 +608,15 @@ class GigeCameraTwin:
         """The next ``count`` triggers start their exposure ``delay`` s late."""
         self._late = (float(delay), int(count))
 
+    def late_frames(self, delay: float, count: int = 1) -> None:
+        """The next ``count`` frames leave the camera ``delay`` s after their readout (a congested link)."""
+        with self._lock:
+            self._late_frames = (float(delay), int(count))
+
     def clear_faults(self) -> None:
         self._unresponsive_until = -math.inf
         self._late = (0.0, 0)
+        self._late_frames = (0.0, 0)
         if self.channel is not None:
             self.channel.drop(0.0)
 
