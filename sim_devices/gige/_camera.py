@@ -177,6 +177,9 @@ class GigeCameraTwin:
         self._renderers: dict[int, Renderer] = {}
         self._static: dict[tuple[Any, ...], bytes] = {}
         self._own_origin = time.monotonic()
+        self._origin = self._own_origin
+        self._origin_checked = -math.inf
+        self._known: tuple[float, float] = (-math.inf, 0.0)  # (truth written up to, when read)
         self._lock = threading.RLock()
         self._wake = threading.Event()
         self._stopping = threading.Event()
@@ -302,9 +305,12 @@ class GigeCameraTwin:
     # ------------------------------------------------------------------ clocks and truth
     def controller_now(self) -> float:
         """The robot controller's clock now (its origin from the robot twin; this twin's start without one)."""
-        clock = self.truth.clock() if self.truth is not None else None
-        origin = float(clock["monotonic_origin"]) if clock else self._own_origin
-        return time.monotonic() - origin
+        now = time.monotonic()
+        if self.truth is not None and now > self._origin_checked + 1.0:  # a file read: not at every call
+            clock = self.truth.clock()
+            self._origin = float(clock["monotonic_origin"]) if clock else self._own_origin
+            self._origin_checked = now
+        return now - self._origin
 
     def opr_at(self, times: np.ndarray) -> np.ndarray:
         """True OPR poses in M (n, 4, 4) at controller ``times``."""
@@ -317,7 +323,10 @@ class GigeCameraTwin:
     def _truth_known(self, until: float) -> bool:
         if self.truth is None:
             return True
+        if self._known[0] >= until:
+            return True  # known that far already: no need to read the records again
         known = self.truth.known_until()
+        self._known = (known if not math.isinf(known) else -math.inf, time.monotonic())
         if math.isinf(known):  # no move is being recorded: the robot rests, unless one starts right now
             return self.controller_now() - self.config.truth_margin >= until
         return known >= until
