@@ -519,9 +519,12 @@ class GigeCameraTwin:
 
     def _produce(self) -> None:
         """Render each exposure once the truth of it is written, and send it."""
-        while True:
-            job = self._jobs.get()
-            if job is None or self._stopping.is_set():
+        while not self._stopping.is_set():
+            try:
+                job = self._jobs.get(timeout=POLL)
+            except queue.Empty:
+                continue
+            if job is None:
                 return
             # A frame leaves the camera once it is exposed and read out, never before (a late trigger's
             # frame comes late), and once the truth of its exposure is written.
