@@ -1,7 +1,7 @@
 """A moving OPR through a GigE twin: each frame is the true pose of its own exposure, blurred by it.
 
 The robot's dense truth is played by a trajectory record the test writes (``sim_devices.trajectory``'s
-format, as the UR twin writes it in a cell): the flange moves 0.04 m/s along the base x axis for 1 s.
+format, as the UR twin writes it in a cell): the flange moves 0.03 m/s along the base x axis for 1.5 s.
 Frames grabbed through Aravis while it moves are compared pixel for pixel with the renderer's image of
 the truth at their exposures — the middle pose and the sub-poses of the motion blur computed here from
 the same record — and the cross is seen to move from frame to frame.
@@ -24,8 +24,9 @@ from tests._gige import Truth, gige_twins, record_of, shared_clock
 WHY_NOT = aravis_available()
 pytestmark = [pytest.mark.timeout(120),
               pytest.mark.skipif(WHY_NOT is not None, reason=f"Aravis cannot be used here: {WHY_NOT}")]
-SPEED = 0.04  # m/s along the base x axis: the cross stays in view over the 1 s move (0–40 mm)
-EXPOSURE = 8e-3  # s: 0.32 mm of motion, ≈ 2 px of blur on the screens
+SPEED = 0.03  # m/s along the base x axis: the cross stays in view over the move (0–45 mm)
+MOVE = 1.5  # s
+EXPOSURE = 10e-3  # s: 0.3 mm of motion, ≈ 2 px of blur on the screens
 
 
 def _quaternion(rotation: np.ndarray) -> np.ndarray:
@@ -36,7 +37,8 @@ def _quaternion(rotation: np.ndarray) -> np.ndarray:
 
 
 def write_motion(directory, truth: Truth, t_start: float, seconds: float) -> None:
-    """A closed trajectory record: the flange from its reference pose along +x at ``SPEED``, 1 kHz."""
+    """A closed trajectory record: the flange from its reference pose along +x at ``SPEED``, 1 kHz, for
+    ``seconds``; at rest at its end after that."""
     reference = truth.world.reference_flange_pose
     times = t_start + np.arange(0.0, seconds, 1e-3)
     rows = np.zeros((len(times), len(COLUMNS)))
@@ -55,8 +57,6 @@ def test_frames_of_a_moving_opr_are_the_truth_of_their_exposures_with_motion_blu
     truth = Truth()
     trajectories = shared_clock(tmp_path / "trajectories")
     origin = json.loads((trajectories / "clock.json").read_text())["monotonic_origin"]
-    t_start = time.monotonic() - origin + 3.0  # after the twin's start-up
-    write_motion(trajectories, truth, t_start, 1.0)
     log = TrajectoryLog(trajectories)
 
     def opr_at(times: np.ndarray) -> np.ndarray:
@@ -67,18 +67,20 @@ def test_frames_of_a_moving_opr_are_the_truth_of_their_exposures_with_motion_blu
     with gige_twins("z", trajectories=trajectories) as (twin,):
         settings = AravisSettings(address=twin.endpoints["host"], exposure_s=EXPOSURE, roi=Roi(0, 0, 1024, 1040))
         with AravisCamera(settings, name="z") as camera:
+            t_start = time.monotonic() - origin + 0.5  # the move starts once the camera is ready
+            write_motion(trajectories, truth, t_start, MOVE)
             while time.monotonic() - origin < t_start + 0.1:
                 time.sleep(0.01)
             frames = []
-            while time.monotonic() - origin < t_start + 0.9 and len(frames) < 4:
+            while time.monotonic() - origin < t_start + MOVE - 0.1 and len(frames) < 4:
                 frames.append(camera.grab(5.0))
-                time.sleep(0.15)
+                time.sleep(0.1)
         records = [record_of(twin, frame.frame_id) for frame in frames]
-    assert len(frames) >= 3
+    assert len(frames) >= 2
     renderer = truth.renderers[8]
     centres = []
     for frame, record in zip(frames, records):
-        assert t_start < record["start"] < t_start + 1.0  # exposed while the OPR moved
+        assert t_start < record["start"] < t_start + MOVE  # exposed while the OPR moved
         middle, blur = exposure_poses(truth.bench, opr_at, record["start"], record["exposure"], 0.25, 12)
         assert blur is not None and len(blur) >= 8  # 2 px of motion: blurred over ≥ 8 sub-poses
         assert np.allclose(record["opr_in_m"]["t"], middle[:3, 3], rtol=0, atol=1e-12)

@@ -77,4 +77,4 @@ def test_the_standalone_twin_serves_the_reference_pose_to_arv_tool_and_the_adapt
         record = {"camera": "y", "seq": (1 << 44) + frame.frame_id, "roi": [0, 0, 1024, 1040],
                   "exposure": 1e-3, "pixel_format": "Mono8"}
         assert np.array_equal(frame.image, truth.frame(record))
-    assert free[1].frame_id == free[0].frame_id + 1 and free[0].image.max() >= 200  # the cross is in view
+    assert free[1].frame_id > free[0].frame_id and free[0].image.max() >= 200  # the cross is in view

@@ -484,7 +484,10 @@ class GigeCameraTwin:
                 elif self._pulses is not None and source == self._pulses["line"]:
                     self._pulses["fired"] += 1
             if not self._unresponsive():
-                self._trigger(when, source)
+                # A line pulse or an action time is an instant of its own: the exposure starts then, however
+                # late this thread wakes. A free-running sensor has no such instant: a late wake-up (a busy
+                # host) exposes now, never in the past.
+                self._trigger(max(when, self.controller_now()) if source == "FreeRun" else when, source)
 
     # ------------------------------------------------------------------ frames
     def _renderer(self, bit_depth: int) -> Renderer:
