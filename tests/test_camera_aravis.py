@@ -64,8 +64,9 @@ def test_a_grab_is_the_renderers_frame_in_every_pixel_format_and_roi(twin_x, tru
         camera.configure(pixel_format="Mono8", roi=Roi(0, 0, 1024, 1040))
 
 
-def test_dropped_packets_are_resent_and_the_frame_is_whole(twin_x, truth):
-    with AravisCamera(AravisSettings(address=twin_x.endpoints["host"], packet_timeout_s=0.005), name="x") as camera:
+def test_dropped_packets_are_resent_and_the_frame_is_whole_with_jumbo_packets(twin_x, truth):
+    settings = AravisSettings(address=twin_x.endpoints["host"], packet_timeout_s=0.005, packet_size=9000)
+    with AravisCamera(settings, name="x") as camera:
         before = twin_x.call("stats")["channel"]
         twin_x.call("drop_packets", fraction=0.02, seed=7)
         try:
@@ -73,6 +74,10 @@ def test_dropped_packets_are_resent_and_the_frame_is_whole(twin_x, truth):
         finally:
             twin_x.call("clear_faults")
         after = twin_x.call("stats")["channel"]
+        # 9000-byte datagrams carry 8964 bytes of image each: 119 payload packets + leader + trailer a frame.
+        blocks = after["blocks"] - before["blocks"]  # ≥ 3: a frame that stayed incomplete is grabbed again
+        assert blocks >= 3
+        assert (after["packets"] + after["dropped"] - before["packets"] - before["dropped"]) == blocks * 121
         dropped = after["dropped"] - before["dropped"]
         assert dropped > 0 and after["resent"] - before["resent"] >= dropped
         assert camera.statistics()["resent_packets"] >= dropped
