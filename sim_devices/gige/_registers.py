@@ -144,13 +144,6 @@ class RegisterSpace:
                 self._memory[address:address + len(data)] = before
             raise
 
-    def writable(self, address: int) -> bool:
-        return address in self._writable
-
     def discovery_data(self) -> bytes:
         """What a DISCOVERY_ACK carries: the first bytes of the bootstrap registers."""
         return self.read(0, f.DISCOVERY_DATA_SIZE)
-
-    def allow(self, *addresses: int) -> None:
-        """Make registers writable by clients (the device registers of the features)."""
-        self._writable.update(addresses)
