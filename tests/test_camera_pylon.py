@@ -116,7 +116,7 @@ def test_factory_takes_the_settings_model_or_a_mapping(cell):
                                                                          "height": 48}}, name="y")
     assert isinstance(camera, PylonCamera) and camera.name == "y" and camera.settings.roi == Roi(0, 0, 64, 48)
     assert create(PylonSettings(serial=SERIALS["y"]), name="y").settings.software_trigger
-    with pytest.raises(SettingsError, match=r"^camera 'y': unknown adapter 'gige'; expected one of pylon$"):
+    with pytest.raises(SettingsError, match=r"^camera 'y': unknown adapter 'gige'; expected one of pylon, aravis$"):
         create({"adapter": "gige"}, name="y")
     with pytest.raises(SettingsError, match=r"^camera 'y' \(pylon\): unknown setting 'exposure'; "
                                             r"expected one of serial, emulator_image, exposure_s"):

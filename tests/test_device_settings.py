@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from drivers.camera import PylonSettings
+from drivers.camera import AravisSettings, PylonSettings
 from drivers.interferometer import SlcanSettings, SocketcandSettings
 from drivers.robot import ABBRwsSettings, URRtdeSettings
 from drivers.rotary_table import GcsSerialSettings, GcsTcpSettings, ModbusRtuSettings, ModbusTcpSettings
@@ -53,7 +53,9 @@ ADAPTERS = [
             ("base_ulr", "http://127.0.0.3"), ("egm_port", "six"), "input should be a valid integer", "abb_rsw",
             "ur_rtde, abb_rws"),
     Adapter(PylonSettings, ("cameras", "y"), {"adapter": "pylon", "serial": "0815-0001"}, ("exposure", 0.002),
-            ("exposure_s", "long"), "input should be a valid number", "pylonn", "pylon"),
+            ("exposure_s", "long"), "input should be a valid number", "pylonn", "pylon, aravis"),
+    Adapter(AravisSettings, ("cameras", "z"), {"adapter": "aravis", "address": "127.0.0.5"}, ("adress", "127.0.0.6"),
+            ("buffers", "many"), "input should be a valid integer", "arvis", "pylon, aravis"),
     Adapter(ModbusTcpSettings, ("rotary_table",), {"adapter": "modbus_tcp", "host": "127.0.0.1", "port": 502},
             ("prot", 502), ("port", "five-o-two"), "input should be a valid integer", "modbus_tpc",
             "modbus_tcp, modbus_rtu, gcs_serial, gcs_tcp"),
@@ -226,7 +228,7 @@ def test_the_published_schema_shows_every_adapters_fields():
         return set(union["discriminator"]["mapping"])
 
     assert tags(devices["robot"]) == {"ur_rtde", "abb_rws"}
-    assert all(tags(cameras[s]) == {"pylon"} for s in "xyz")
+    assert all(tags(cameras[s]) == {"pylon", "aravis"} for s in "xyz")
     assert tags(devices["rotary_table"]) == {"modbus_tcp", "modbus_rtu", "gcs_serial", "gcs_tcp"}
     assert tags(devices["interferometer"]) == {"socketcand", "slcan"}
     # The data formats a station may carry are in it too, field by field.

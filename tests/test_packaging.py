@@ -38,7 +38,8 @@ def test_the_core_depends_on_numpy_scipy_and_opencv_only_and_all_gives_every_ext
     extras = project["optional-dependencies"]
     everything = extras["all"][0]
     named = set(everything[everything.index("[") + 1:everything.index("]")].split(","))
-    assert named == set(extras) - {"all", "test"}, "the 'all' extra must name every other extra but 'test'"
+    # 'aravis' builds PyGObject against the OS's libraries: the Makefile installs it where it can.
+    assert named == set(extras) - {"all", "test", "aravis"}, "'all' must name every other extra but test and aravis"
 
 
 def _linked_core_venv(target: Path) -> Path:

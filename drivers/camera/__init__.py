@@ -1,7 +1,7 @@
 """Cameras: the ``Camera`` interface, the settings, the pylon adapter, the triplet and the factories.
 
-``create(settings, name=...)`` builds the adapter that ``settings.adapter`` names (``pylon``); it
-is not opened yet. The simulated in-process camera lives in ``sim_devices.camera.SimCamera``
+``create(settings, name=...)`` builds the adapter that ``settings.adapter`` names (``pylon``,
+``aravis``); it is not opened yet. The simulated in-process camera lives in ``sim_devices.camera.SimCamera``
 (drivers never import sim_devices).
 """
 
@@ -11,9 +11,11 @@ from collections.abc import Mapping
 from typing import Any
 
 from drivers._settings import SettingsUnion
+from drivers.camera._aravis import AravisCamera, aravis_available
+from drivers.camera._aravis_action import ActionGroup
 from drivers.camera._interface import Camera, Frame, GrabFailed, Roi, TriggeredCamera
 from drivers.camera._pylon import SATURATION, PylonCamera, ensure_emulated_cameras
-from drivers.camera._settings import CameraSettings, PylonSettings
+from drivers.camera._settings import ActionSettings, AravisSettings, CameraSettings, PylonSettings
 from drivers.camera._stream import FrameStream, StreamStats, StreamTriple
 from drivers.camera._triplet import CameraTriplet
 
@@ -37,6 +39,8 @@ def create(settings: CameraSettings | Mapping[str, Any], *, name: str) -> Trigge
         For a mapping that is not valid settings (one line naming the adapter and the setting).
     """
     checked = _SETTINGS_UNION.validate(settings, name=name)
+    if isinstance(checked, AravisSettings):
+        return AravisCamera(checked, name=name)
     return PylonCamera(checked, name=name)
 
 
@@ -49,6 +53,10 @@ def create_triplet(
 
 __all__ = [
     "ADAPTERS",
+    "ActionGroup",
+    "ActionSettings",
+    "AravisCamera",
+    "AravisSettings",
     "SATURATION",
     "Camera",
     "CameraSettings",
@@ -62,6 +70,7 @@ __all__ = [
     "StreamStats",
     "StreamTriple",
     "TriggeredCamera",
+    "aravis_available",
     "create",
     "create_triplet",
     "ensure_emulated_cameras",

@@ -45,10 +45,14 @@ from typing import Any
 import numpy as np
 
 from drivers._errors import DeviceError, DeviceTimeout
+from drivers.camera._aravis import AravisCamera
 from drivers.camera._interface import Frame, Roi
 from drivers.camera._pylon import PylonCamera
 
 PROTOCOL_TIMEOUT = 10.0  # s the simulated trigger line may take to answer a request
+# The adapters with the stream methods (stream_begin/fire/fetch/end): pylon (live, or its emulator
+# replaying the simulated cell's recording) and Aravis (always live).
+StreamingCamera = PylonCamera | AravisCamera
 
 
 @dataclass(frozen=True)
@@ -104,7 +108,7 @@ class _Item:
 class _Feed:
     """One camera's frames in arrival order, with their trigger numbers."""
 
-    def __init__(self, name: str, camera: PylonCamera, period: float, exposure: float) -> None:
+    def __init__(self, name: str, camera: StreamingCamera, period: float, exposure: float) -> None:
         self.name = name
         self.camera = camera
         self.period = period
@@ -131,6 +135,7 @@ class _EmulatedFeed(_Feed):
     def __init__(self, name: str, camera: PylonCamera, period: float, exposure: float, directory: Path,
                  frames: int, tick_frequency: float) -> None:
         super().__init__(name, camera, period, exposure)
+        self.camera: PylonCamera = camera
         self.directory = directory
         self.frames = frames
         self.tick_frequency = tick_frequency
@@ -183,7 +188,7 @@ class _EmulatedFeed(_Feed):
 class _LiveFeed(_Feed):
     """A real camera's frames, collected by a reader thread as they arrive."""
 
-    def __init__(self, name: str, camera: PylonCamera, period: float, exposure: float) -> None:
+    def __init__(self, name: str, camera: StreamingCamera, period: float, exposure: float) -> None:
         super().__init__(name, camera, period, exposure)
         self._queue: deque[_Item] = deque()
         self._lock = threading.Lock()
@@ -236,7 +241,7 @@ class FrameStream:
     Parameters are set by ``CameraTriplet.start_stream``.
     """
 
-    def __init__(self, cameras: Mapping[str, PylonCamera], rate_hz: float, exposures: Mapping[str, float],
+    def __init__(self, cameras: Mapping[str, StreamingCamera], rate_hz: float, exposures: Mapping[str, float],
                  rois: Mapping[str, Roi | None], hardware_trigger: bool, timeout: float, name: str) -> None:
         if not 0 < rate_hz <= 10_000:
             raise ValueError(f"stream rate must be in (0, 10000] Hz, got {rate_hz!r}")
@@ -265,7 +270,7 @@ class FrameStream:
         self._root: Path | None = None
         if self.emulated:
             first = next(iter(self.cameras.values()))
-            assert first.emulator_image is not None
+            assert isinstance(first, PylonCamera) and first.emulator_image is not None
             self._root = first.emulator_image.parent / "streams"
             self._start_emulated()
         else:
@@ -333,6 +338,7 @@ class FrameStream:
             self.stats.triggers = int(self._plan["triggers"])
             for key, camera in self.cameras.items():
                 directory = root / self._id
+                assert isinstance(camera, PylonCamera)
                 camera.stream_begin(exposure_s=self.exposures[key], roi=self.rois[key], trigger_source="Software",
                                     sequence=directory / key)
                 self._feeds[key] = _EmulatedFeed(key, camera, self.period, self.exposures[key], directory,

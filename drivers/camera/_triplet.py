@@ -6,8 +6,7 @@ from collections.abc import Mapping
 
 from drivers._errors import DeviceConnectionError, DeviceError, DeviceTimeout
 from drivers.camera._interface import Camera, Frame, GrabFailed, Roi, TriggeredCamera
-from drivers.camera._pylon import PylonCamera
-from drivers.camera._stream import FrameStream
+from drivers.camera._stream import FrameStream, StreamingCamera
 
 DEFAULT_STREAM_EXPOSURE = 1e-3  # s, when neither the call nor the camera's settings give one
 
@@ -121,9 +120,9 @@ class CameraTriplet:
         DeviceError, DeviceTimeout
             The cameras (or the simulated trigger line) could not be armed.
         """
-        cameras: dict[str, PylonCamera] = {}
+        cameras: dict[str, StreamingCamera] = {}
         for key, camera in self.cameras.items():
-            if not isinstance(camera, PylonCamera):
+            if not isinstance(camera, StreamingCamera):
                 raise ValueError(f"{self.name}: camera {key} ({type(camera).__name__}) cannot stream")
             cameras[key] = camera
         rois = {key: (roi.get(key) if isinstance(roi, Mapping) else roi) for key in cameras}

@@ -387,11 +387,8 @@ class StreamServer:
         return worked
 
     def _render(self, stream: TwinStream, camera: _Camera, j: int, start: float) -> None:
-        ends = self.opr_at(np.array([start, start + camera.exposure]))
-        samples = self._blur_samples(ends[0], ends[1])
-        times = start + (np.arange(samples) + 0.5) / samples * camera.exposure
-        middle = self.opr_at(np.array([start + 0.5 * camera.exposure]))[0]
-        blur = list(self.opr_at(times)) if samples > 1 else None
+        middle, blur = exposure_poses(self.bench, self.opr_at, start, camera.exposure, self.config.blur_step_px,
+                                      self.config.max_blur_samples)
         seq = SEQ_BASE + (stream.number << 20) + j
         image = self.renderer.render(camera.name, middle, seq=seq, roi=camera.roi, blur=blur,
                                      exposure_scale=camera.exposure / 1e-3)
@@ -402,14 +399,30 @@ class StreamServer:
             handle.write(f"{j} {ticks}\n")
         self.frames_rendered += 1
 
-    def _blur_samples(self, first: np.ndarray, last: np.ndarray) -> int:
-        """Sub-poses an exposure needs: its motion on the screen (the beam's lever of about one screen
-        distance) in pixels, over ``blur_step_px``."""
-        lever = float(self.bench.config.screen_distance)
-        moved = float(np.linalg.norm(last[:3, 3] - first[:3, 3])) + lever * float(
-            np.linalg.norm(matrix_to_rotvec(last[:3, :3] @ first[:3, :3].T)))
-        pixels = moved / float(self.bench.config.metres_per_px)
-        return int(min(self.config.max_blur_samples, max(1, math.ceil(pixels / self.config.blur_step_px))))
+
+def blur_sample_count(bench: OpticalBench, first: np.ndarray, last: np.ndarray, step_px: float,
+                      max_samples: int) -> int:
+    """Sub-poses an exposure from pose ``first`` to ``last`` needs: its motion on the screen (the
+    beam's lever of about one screen distance) in pixels, over ``step_px``, at most ``max_samples``."""
+    lever = float(bench.config.screen_distance)
+    moved = float(np.linalg.norm(last[:3, 3] - first[:3, 3])) + lever * float(
+        np.linalg.norm(matrix_to_rotvec(last[:3, :3] @ first[:3, :3].T)))
+    pixels = moved / float(bench.config.metres_per_px)
+    return int(min(max_samples, max(1, math.ceil(pixels / step_px))))
+
+
+def exposure_poses(bench: OpticalBench, opr_at: Callable[[np.ndarray], np.ndarray], start: float, exposure: float,
+                   step_px: float, max_samples: int) -> tuple[np.ndarray, list[np.ndarray] | None]:
+    """What ``Renderer.render`` needs for an exposure from ``start`` for ``exposure`` s: the OPR pose at
+    its middle and, when the OPR moves enough to show, the sub-poses spread over it (``blur``; None for
+    a sharp frame). ``opr_at(times)`` gives the true OPR poses (n, 4, 4) at those instants."""
+    ends = opr_at(np.array([start, start + exposure]))
+    samples = blur_sample_count(bench, ends[0], ends[1], step_px, max_samples)
+    middle = opr_at(np.array([start + 0.5 * exposure]))[0]
+    if samples <= 1:
+        return middle, None
+    times = start + (np.arange(samples) + 0.5) / samples * exposure
+    return middle, list(opr_at(times))
 
 
 def control_commands(server: StreamServer) -> dict[str, Callable[..., Any]]:
