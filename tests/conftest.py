@@ -36,11 +36,12 @@ LONGEST_FIRST = {
     "test_fuzz_inputs.py": 26, "test_world_race.py": 20, "test_uncertainty_coverage.py": 20,
     "test_robot_isolation.py": 20, "test_ur_twin.py": 20, "test_camera_stream.py": 20, "test_robot_dynamic.py": 20,
     "test_store_postgres.py": 18, "test_run_lock.py": 15, "test_rotary_drivers.py": 15, "test_abb_twin.py": 25,
-    "test_robot_abb.py": 25,
+    "test_robot_abb.py": 25, "test_camera_aravis.py": 20, "test_gige_stream.py": 15,
 }
 # Modules that start a simulated cell, twin processes, a server, a database or a browser.
 INTEGRATION = {
-    "test_abb_twin.py", "test_robot_abb.py",
+    "test_abb_twin.py", "test_robot_abb.py", "test_camera_aravis.py", "test_gige_motion.py",
+    "test_gige_pygigevision.py", "test_gige_standalone.py", "test_gige_stream.py",
     "test_camera_stream.py", "test_cell.py", "test_cli_run_output.py", "test_device_settings.py",
     "test_dynamic_procedures.py", "test_dynamic_system.py", "test_fault_matrix.py", "test_faults_and_process.py",
     "test_fuzz_inputs.py", "test_interferometer_can.py", "test_interferometer_timing.py", "test_kill_resume.py",
