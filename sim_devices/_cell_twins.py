@@ -92,7 +92,8 @@ class CellTwin:
         bench = OpticalBench(self.world, self.settings.get("optics"))
         return CameraFileTwin(self.world, bench, self.settings["frames"], stream=self.settings.get("stream"),
                               trajectories=self.settings.get("trajectories"),
-                              render_delay=float(self.settings.get("render_delay", 0.0)))
+                              render_delay=float(self.settings.get("render_delay", 0.0)),
+                              stamp_frames=bool(self.settings.get("stamp_frames", False)))
 
     def _robot(self) -> Any:
         from sim_devices.ur import URControllerTwin

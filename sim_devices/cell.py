@@ -135,13 +135,23 @@ class CellConfig:
         InterferometerTwinConfig.from_dict(self.interferometer)
 
 
+FILE_TWIN_KEYS = ("render_delay", "stamp_frames")  # the camera file twin's own keys of the cameras section
+
+
 def _stream_section(cameras: Mapping[str, Any]) -> dict[str, Any]:
-    """The ``cameras`` section without ``render_delay`` (s the file twin waits before it puts a settled
-    pose's frames in place: a slow renderer on demand, for the race tests), which it checks."""
+    """The ``cameras`` section without the file twin's own keys, which it checks: ``render_delay`` (s
+    the file twin waits before it puts a settled pose's frames in place: a slow renderer on demand,
+    for the race tests) and ``stamp_frames`` (embed a frame stamp in every frame; default true)."""
     delay = cameras.get("render_delay", 0.0)
     if not isinstance(delay, (int, float)) or delay < 0:
         raise ValueError(f"cameras config: render_delay must be a number of seconds ≥ 0, got {delay!r}")
-    return {key: value for key, value in cameras.items() if key != "render_delay"}
+    if not isinstance(cameras.get("stamp_frames", True), bool):
+        raise ValueError(f"cameras config: stamp_frames must be true or false, got {cameras['stamp_frames']!r}")
+    return {key: value for key, value in cameras.items() if key not in FILE_TWIN_KEYS}
+
+
+def _stamps_frames(config: CellConfig) -> bool:
+    return bool(config.cameras.get("stamp_frames", True))
 
 
 class CellNotRunning(RuntimeError):
@@ -314,7 +324,8 @@ class CellHost:
             settings: dict[str, dict[str, Any]] = {
                 "cameras": {"frames": str(self.directory / "frames"), "optics": dict(config.optics),
                             "stream": _stream_section(config.cameras), "trajectories": str(trajectories),
-                            "render_delay": float(config.cameras.get("render_delay", 0.0))},
+                            "render_delay": float(config.cameras.get("render_delay", 0.0)),
+                            "stamp_frames": _stamps_frames(config)},
                 "robot": {"host": host, "time_scale": self.time_scale, "seed": self.seed,
                           "trajectory_dir": str(trajectories), **config.robot},
                 "rotary_table": {**config.rotary_table, "time_scale": self.time_scale},
@@ -538,7 +549,8 @@ class CellHost:
             "devices": {
                 "robot": {"adapter": "ur_rtde", "host": robot["host"]},
                 "cameras": {
-                    axis: {"adapter": "pylon", "serial": serial, "emulator_image": str(frames_dir / f"{axis}.bmp")}
+                    axis: {"adapter": "pylon", "serial": serial, "emulator_image": str(frames_dir / f"{axis}.bmp"),
+                           **({"embedded_stamp": True} if _stamps_frames(CellConfig.from_dict(self.config)) else {})}
                     for axis, serial in zip("xyz", ("0815-0000", "0815-0001", "0815-0002"))
                 },
                 "rotary_table": {"adapter": "modbus_tcp", "host": "127.0.0.1", "port": table["modbus_tcp_port"],

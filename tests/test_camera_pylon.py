@@ -125,3 +125,58 @@ def test_factory_takes_the_settings_model_or_a_mapping(cell):
         create({"adapter": "pylon"}, name="y")
     with pytest.raises(SettingsError, match=r"exposure_s: input should be greater than 0 \(got -0.001\)"):
         create({"adapter": "pylon", "serial": "1", "exposure_s": -1e-3}, name="y")
+
+
+def test_embedded_stamps_prove_when_the_scene_was_still_and_are_blanked(tmp_path):
+    """The file twin stamps every frame it puts in place (rendered now or ahead of a move); the pylon
+    adapter reads the stamp through the real emulator as the frame's exposure evidence and blanks it."""
+    import time
+
+    from drivers.camera import read_stamp
+
+    world = World(WorldConfig(seed=2))
+    twin = CameraFileTwin(world, OpticalBench(world), tmp_path / "frames", stamp_frames=True)
+    twin.start()
+    try:
+        cameras = {k: {**v, "embedded_stamp": True} for k, v in station_cameras(twin).items()}
+        with create_triplet(cameras) as triplet:
+            for ahead in (False, True):
+                pose = world.flange_pose()
+                pose[:3, 3] += [0.003, -0.002, 0.001]
+                if ahead:  # announced first: the frames are rendered ahead, then stamped when put in place
+                    world.announce(flange_pose=pose)
+                    time.sleep(0.5)
+                before = time.time()
+                state = world.set_flange_pose(pose)
+                after = time.time()
+                on_disk = read_stamp(_on_disk(twin, "x"))
+                assert on_disk is not None and on_disk.frame_number == twin.frames_written and on_disk.still
+                assert before <= on_disk.time <= after  # stamped when put in place, not when rendered
+                for name, frame in triplet.grab().items():
+                    assert frame.evidence == "still since" and frame.exposure_start == pytest.approx(on_disk.time)
+                    expected = twin.renderer.render(name, state.opr_in_m, seq=twin.frames_written)
+                    np.testing.assert_array_equal(frame.image[1:], expected[1:])
+                    np.testing.assert_array_equal(frame.image[0, :24], frame.image[1, :24])  # blanked
+                    np.testing.assert_array_equal(frame.image[0, 24:], expected[0, 24:])
+        assert twin.stats()["rendered_ahead"] >= 1
+    finally:
+        twin.stop()
+
+
+def test_an_emulated_frame_without_a_stamp_carries_no_evidence(cell, triplet):
+    """An emulated camera serves a file's pixels: its trigger says nothing about what they show."""
+    for frame in triplet.grab().values():
+        assert frame.exposure_start is None and frame.evidence is None
+
+
+def test_a_corrupt_or_missing_stamp_is_no_stamp():
+    from drivers.camera import read_stamp
+    from sim_devices.camera import stamp_image
+
+    image = np.full((8, 64), 40, np.uint8)
+    assert read_stamp(image) is None
+    stamp_image(image, 7, 1234.5)
+    decoded = read_stamp(image)
+    assert decoded is not None and (decoded.frame_number, decoded.time, decoded.still) == (7, 1234.5, True)
+    image[0, 13] ^= 0x01  # one bit of the time flipped: the CRC no longer fits
+    assert read_stamp(image) is None

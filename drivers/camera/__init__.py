@@ -16,6 +16,7 @@ from drivers.camera._aravis_action import ActionGroup
 from drivers.camera._interface import Camera, Frame, GrabFailed, Roi, TriggeredCamera
 from drivers.camera._pylon import SATURATION, PylonCamera, ensure_emulated_cameras
 from drivers.camera._settings import ActionSettings, AravisSettings, CameraSettings, PylonSettings
+from drivers.camera._stamp import EmbeddedStamp, read_stamp
 from drivers.camera._stream import FrameStream, StreamStats, StreamTriple
 from drivers.camera._triplet import CameraTriplet
 
@@ -57,16 +58,17 @@ __all__ = [
     "ActionSettings",
     "AravisCamera",
     "AravisSettings",
-    "SATURATION",
     "Camera",
     "CameraSettings",
     "CameraTriplet",
+    "EmbeddedStamp",
     "Frame",
     "FrameStream",
     "GrabFailed",
     "PylonCamera",
     "PylonSettings",
     "Roi",
+    "SATURATION",
     "StreamStats",
     "StreamTriple",
     "TriggeredCamera",
@@ -74,4 +76,5 @@ __all__ = [
     "create",
     "create_triplet",
     "ensure_emulated_cameras",
+    "read_stamp",
 ]

@@ -98,6 +98,7 @@ class AravisCamera:
         self._can_latch = False
         self._tick_frequency = 1e9
         self._not_before_ns = 0
+        self._latched_at: float | None = None  # host wall-clock time of the last latch (_not_before_ns)
 
     # ------------------------------------------------------------------ lifecycle
     def open(self) -> None:
@@ -292,9 +293,11 @@ class AravisCamera:
         frame of an earlier trigger, or one the camera still had queued) and is never handed out."""
         if not self._can_latch:
             return
+        latched_at = time.time()  # the latch happens after this: a frame not before it is not before this
         self._call("latch the timestamp", "execute_command", "GevTimestampControlLatch")
         ticks = int(self._call("read the timestamp", "get_integer", "GevTimestampValue"))
         self._not_before_ns = int(ticks * 1e9 / self._tick_frequency)
+        self._latched_at = latched_at
 
     def trigger(self) -> None:
         """Drop frames exposed before this call, then fire (software or action; a line fires itself)."""
@@ -345,7 +348,9 @@ class AravisCamera:
             host = int(buffer.get_system_timestamp()) / 1e9
         finally:
             stream.push_buffer(buffer)
-        frame = Frame(image, host, frame_id, self.serial, SATURATION.get(pixel_format, int(image.max())))
+        # Only frames stamped at or after the latch are handed out (_pop): their exposure started after it.
+        exposure = (self._latched_at, "exposure") if self._latched_at is not None else (None, None)
+        frame = Frame(image, host, frame_id, self.serial, SATURATION.get(pixel_format, int(image.max())), *exposure)
         return frame, frame_id, stamp, None
 
     def retrieve(self, timeout: float | None = None) -> Frame:

@@ -29,6 +29,13 @@ class Frame:
         Serial number or name of the camera.
     saturation : int
         The pixel value that means "saturated" for this pixel format (255, 4095, ...).
+    exposure_start : float or None
+        Host wall-clock time (``time.time()`` scale, s) the frame is known to show the scene at or
+        after, or None when the camera gives no such evidence. What it means is ``evidence``.
+    evidence : str or None
+        ``"exposure"``: the exposure started at ``exposure_start`` (a camera clock mapped to the host,
+        or a trigger sent then); ``"still since"``: the frame shows a scene that has been still since
+        ``exposure_start`` (an embedded stamp of the simulated file cameras).
     """
 
     image: np.ndarray
@@ -36,6 +43,8 @@ class Frame:
     frame_id: int
     camera: str
     saturation: int
+    exposure_start: float | None = None
+    evidence: str | None = None
 
 
 @dataclass(frozen=True)

@@ -29,6 +29,12 @@ retries : int, default 2
 timeout_s : float, default 2.0
     Default grab timeout.
 
+embedded_stamp : bool, default False
+    The camera embeds a frame stamp in the image's first pixels (``drivers.camera._stamp``; the
+    simulated cell's file cameras do): it becomes the frame's ``exposure_start``/``evidence`` and is
+    blanked. Without it a real camera's software trigger bounds the exposure from below; an emulated
+    camera's frames (a file's pixels) and hardware-triggered or free-running ones carry no evidence.
+
 Errors: a camera that is not found or vanishes → ``DeviceConnectionError``; a frame that does not
 come → ``DeviceTimeout``; an incomplete buffer → ``GrabFailed``. ``grab`` never returns None.
 Host timestamps (``time.time()`` at retrieval): the emulator's ``TimeStamp`` is always 0.
@@ -48,6 +54,7 @@ import numpy as np
 from drivers._errors import DeviceConnectionError, DeviceError, DeviceTimeout
 from drivers.camera._interface import Frame, GrabFailed, Roi
 from drivers.camera._settings import PylonSettings
+from drivers.camera._stamp import read_stamp, without_stamp
 
 SATURATION = {"Mono8": 255, "Mono10": 1023, "Mono10p": 1023, "Mono12": 4095, "Mono12p": 4095,
               "Mono12Packed": 4095, "Mono16": 65535}
@@ -94,6 +101,8 @@ class PylonCamera:
         self.trigger_source = settings.trigger_source or ("Software" if settings.software_trigger else None)
         self._camera: Any = None
         self._frame_id = 0
+        self.embedded_stamp = settings.embedded_stamp
+        self._triggered_at: float | None = None  # host time of the last software trigger
         self._loaded_image: tuple[int, int, int] | None = None  # stat of the emulator file in use
         self._device = f"camera {self.name} ({self.serial})"
         self._stream_saved: dict[str, Any] | None = None  # what a stream changed, to put back
@@ -265,6 +274,7 @@ class PylonCamera:
                         raise DeviceTimeout(self._device, "trigger",
                                             f"not ready for a trigger within {self.timeout_s:.3g} s")
                     time.sleep(_POLL_S)
+                self._triggered_at = time.time()  # the exposure cannot start before its trigger
                 camera.ExecuteSoftwareTrigger()
         except genicam.GenericException as error:
             raise self._lost_or(GrabFailed, "trigger", error) from None
@@ -298,7 +308,27 @@ class PylonCamera:
         finally:
             result.Release()
         self._frame_id += 1
-        return Frame(image, time.time(), self._frame_id, self.serial, SATURATION.get(pixel_format, int(image.max())))
+        exposure_start, evidence = self._evidence(image)
+        return Frame(image, time.time(), self._frame_id, self.serial, SATURATION.get(pixel_format, int(image.max())),
+                     exposure_start, evidence)
+
+    def _evidence(self, image: np.ndarray) -> tuple[float | None, str | None]:
+        """When the frame is known to show the scene (``Frame.exposure_start``, ``Frame.evidence``).
+
+        An embedded stamp says it (and is blanked); an emulated camera's frame is the pixels of a file,
+        so its trigger proves nothing about what they show; a real camera's software trigger bounds its
+        exposure from below. A hardware-triggered or free-running camera without stamps gives none.
+        """
+        if self.embedded_stamp:
+            stamp = read_stamp(image)
+            if stamp is None:
+                return None, None
+            without_stamp(image)
+            return stamp.time, "still since" if stamp.still else "exposure"
+        if self.emulator_image is None and self.trigger_source == "Software" and self._triggered_at is not None:
+            triggered, self._triggered_at = self._triggered_at, None
+            return triggered, "exposure"
+        return None, None
 
     def grab(self, timeout: float | None = None) -> Frame:
         """Trigger and retrieve one frame; incomplete buffers and timeouts are retried

@@ -40,6 +40,9 @@ class PylonSettings(DeviceSettings):
     )
     retries: int = Field(2, ge=0, le=10, description="extra grab attempts after an incomplete buffer or a timeout")
     timeout_s: float = Field(2.0, gt=0, description="default grab timeout, seconds")
+    embedded_stamp: bool = Field(
+        False, description="the camera embeds a frame stamp (frame number and time) in the image's first pixels: "
+        "read it as the frame's exposure evidence and blank it (docs/cameras.md)")
 
 
 class ActionSettings(DeviceSettings):

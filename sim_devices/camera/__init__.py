@@ -10,8 +10,9 @@ interface. See docs/cameras.md.
 
 from sim_devices.camera._optics import AXIS_NAMES, FANS, IDEAL_OPTICS, OpticalBench, OpticsConfig
 from sim_devices.camera._renderer import Renderer
+from sim_devices.camera._stamp import stamp_image
 from sim_devices.camera._stream import TICKS_PER_SECOND, CameraClock, StreamConfig, StreamServer, exposure_poses
 from sim_devices.camera._twin import CameraFileTwin, SimCamera
 
 __all__ = ["AXIS_NAMES", "FANS", "IDEAL_OPTICS", "TICKS_PER_SECOND", "CameraClock", "CameraFileTwin", "OpticalBench",
-           "OpticsConfig", "Renderer", "SimCamera", "StreamConfig", "StreamServer", "exposure_poses"]
+           "OpticsConfig", "Renderer", "SimCamera", "StreamConfig", "StreamServer", "stamp_image", "exposure_poses"]

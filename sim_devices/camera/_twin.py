@@ -27,6 +27,7 @@ from drivers import DeviceConnectionError, DeviceTimeout
 from drivers.camera import Frame, GrabFailed, Roi
 from sim_devices.camera._optics import AXIS_NAMES, OpticalBench
 from sim_devices.camera._renderer import Renderer
+from sim_devices.camera._stamp import stamp_bmp_file, stamp_image
 from sim_devices.camera._stream import StreamConfig, StreamServer
 from sim_devices.control import dispatch
 from sim_devices.faults import FaultKind, FaultPlan
@@ -38,9 +39,14 @@ def write_bmp_atomically(path: Path, image: np.ndarray) -> None:
     ok, encoded = cv2.imencode(".bmp", image)
     if not ok:
         raise OSError(f"could not encode {path.name} as BMP")
+    write_atomically(path, encoded.tobytes())
+
+
+def write_atomically(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` so that a reader sees the old file or the new one, never a partial one."""
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     with open(tmp, "wb") as handle:
-        handle.write(encoded.tobytes())
+        handle.write(data)
     os.replace(tmp, path)  # atomic within one directory
 
 
@@ -83,11 +89,16 @@ class CameraFileTwin:
     render_delay : float
         Seconds each settled frame set takes on top of its rendering (a slow renderer on demand: the
         cell's race tests; ``cameras.render_delay`` in a cell configuration). 0 by default.
+    stamp_frames : bool
+        Embed a frame stamp (``sim_devices.camera._stamp``: frame number, and the host time since which
+        the scene it shows has been still) in the first pixels of every frame put in place, so a reader
+        can prove a frame was exposed after a move ended. A cell stamps its frames; off by default.
     """
 
     def __init__(self, world: World, bench: OpticalBench, directory: str | Path, seed: int | None = None,
                  stream: StreamConfig | Mapping[str, Any] | None = None,
-                 trajectories: str | Path | None = None, render_delay: float = 0.0) -> None:
+                 trajectories: str | Path | None = None, render_delay: float = 0.0,
+                 stamp_frames: bool = False) -> None:
         self.world = world
         self.bench = bench
         self.directory = Path(directory)
@@ -113,6 +124,7 @@ class CameraFileTwin:
         self._stopping = False
         self._last_state: WorldState | None = None
         self.render_delay = float(render_delay)
+        self.stamp_frames = bool(stamp_frames)
 
     # ------------------------------------------------------------------ lifecycle (cell host API)
     def start(self) -> dict[str, Any]:
@@ -246,13 +258,19 @@ class CameraFileTwin:
             announced, ahead = self._take_ahead(index, state.opr_in_m, scale)
             if self.render_delay > 0:
                 time.sleep(self.render_delay)  # a slow renderer: the settled pose's ack comes this much later
+            still_since = time.time()  # the scene these frames show has been still at least since now
             files = {}
             for name in AXIS_NAMES:
-                if ahead is not None:
+                if ahead is not None and self.stamp_frames:
+                    write_atomically(self.paths[name], stamp_bmp_file(ahead.paths[name], index, still_since))
+                    ahead.paths[name].unlink(missing_ok=True)
+                elif ahead is not None:
                     os.replace(ahead.paths[name], self.paths[name])  # atomic: the old frame or the new one
                 else:
                     with self._render_lock:
                         image = self.renderer.render(name, state.opr_in_m, seq=index, exposure_scale=scale)
+                    if self.stamp_frames:
+                        stamp_image(image, index, still_since)
                     write_bmp_atomically(self.paths[name], image)
                 files[name] = str(self.paths[name])
             self.frames_written = index
@@ -262,6 +280,7 @@ class CameraFileTwin:
             self.world.truth.record(
                 "frames", seq=state.seq, index=index, time=self.world.clock(), files=files,
                 opr_in_m=pose_record(state.opr_in_m), laser_on=self.laser_on, rendered_ahead=ahead is not None,
+                still_since=still_since if self.stamp_frames else None,
             )
 
 
