@@ -12,16 +12,23 @@ from pathlib import Path
 from typing import Any
 
 from procedures._engine import RunEngine, create_run
-from procedures._errors import ConfigError, RunError
-from procedures._files import InputRefused, read_text_file
 from procedures._hooks import HookRunner
 from procedures._loading import load_procedure, load_station, resolve_procedure_path
-from procedures._models import HookSpec, StationFile
 from procedures._overrides import apply_overrides
 from procedures._run_state import PauseDecision
-from procedures._science import InstrumentScience, Science
-from procedures._station import Operator, StationRuntime
 from procedures._store import Lease, RunStore
+from procedures.station import (
+    ConfigError,
+    HookSpec,
+    InputRefused,
+    InstrumentScience,
+    Operator,
+    RunError,
+    Science,
+    StationFile,
+    StationRuntime,
+    read_text_file,
+)
 
 
 def with_earlier_truth(station: StationFile, before: StationFile) -> StationFile:

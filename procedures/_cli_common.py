@@ -26,10 +26,10 @@ from typing import TYPE_CHECKING, Any, TextIO
 
 from procedures._cli_display import Display
 from procedures._cli_results import result_lines, result_summary
-from procedures._errors import RunError
 from procedures._run_state import PauseDecision, RunState
 from procedures._store import RunStore
 from procedures._store_db import SQLITE_FILE, STORE_ENV, store_location
+from procedures.station import RunError
 
 if TYPE_CHECKING:  # only for annotations: the engine's stack loads with the commands that run one
     from procedures._engine import RunEngine

@@ -17,7 +17,7 @@ from procedures._cli_common import (
     seconds_value,
     station_for,
 )
-from procedures._errors import RunLocked
+from procedures.station import RunLocked
 
 
 def register(subparsers) -> None:

@@ -12,7 +12,7 @@ from typing import Any
 import yaml
 
 from procedures._cli_common import seconds_value, seed_value
-from procedures._files import InputRefused, read_text_file
+from procedures.station import InputRefused, read_text_file
 
 
 def register(subparsers) -> None:

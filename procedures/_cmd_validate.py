@@ -13,7 +13,7 @@ import sys
 
 import numpy as np
 
-from procedures._errors import ConfigError
+from procedures.station import ConfigError
 
 
 def register(subparsers) -> None:
@@ -72,7 +72,7 @@ def run(args) -> int:
 def _record_problems(station) -> list[str]:
     from procedures._dry_run import collapse, record_problems
     from procedures._engine import record_paths
-    from procedures._science import InstrumentScience
+    from procedures.station import InstrumentScience
 
     return collapse(record_problems(record_paths(station), InstrumentScience()))
 
@@ -80,8 +80,8 @@ def _record_problems(station) -> list[str]:
 def _dry_run(station, procedure) -> tuple[list[str], int]:
     from drivers.robot import MotionEnvelope
     from procedures._dry_run import collapse, offline_problems
-    from procedures._science import InstrumentScience
     from procedures.kinds import kind_of
+    from procedures.station import InstrumentScience
 
     science = InstrumentScience()
     science.configure(station)

@@ -18,12 +18,9 @@ import numpy as np
 
 from drivers import MotionRefused
 from drivers.robot import MotionEnvelope
-from procedures._files import InputRefused
-from procedures._geometry import matrix_to_euler, tcp_in_m
-from procedures._science import Science
-from procedures._station import StationRuntime
 from procedures._step_context import SCREENS, robot_speed
 from procedures.kinds import DeviceRole, MotionParameters, Step
+from procedures.station import InputRefused, Science, StationRuntime, matrix_to_euler, tcp_in_m
 
 # The order devices are opened and reported in: the robot first, the references last.
 _ROLE_ORDER = ("robot", *(f"camera:{s}" for s in SCREENS), "rotary_table", "interferometer")

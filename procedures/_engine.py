@@ -31,17 +31,23 @@ from drivers import DeviceError
 from drivers.robot import EmergencyStop, ProtectiveStop
 from instrument import __version__
 from procedures._dry_run import collapse, plan_problems
-from procedures._errors import DryRunFailed, RunAborted, RunError
-from procedures._files import InputRefused
 from procedures._hooks import HookRunner
-from procedures._models import Event, StationFile
 from procedures._run_state import RESUMABLE_STATES, PauseDecision, RunState
-from procedures._science import Compensator, Science
-from procedures._station import StationRuntime
 from procedures._step_context import StationStepContext
 from procedures._store import Lease, RunStore
-from procedures._truth import TruthLog
 from procedures.kinds import RESTING_SETUP, AnalysisContext, PoseReading, ProcedureBase, Setup, Step, kind_of
+from procedures.station import (
+    Compensator,
+    DryRunFailed,
+    Event,
+    InputRefused,
+    RunAborted,
+    RunError,
+    Science,
+    StationFile,
+    StationRuntime,
+    TruthLog,
+)
 
 _MAX_PROBLEMS_SHOWN = 50
 _PLURAL = {"cycle": "cycles", "axis": "axes", "group": "groups", "repeat": "repeats"}
@@ -107,7 +113,7 @@ class RunEngine:
     store, run_id : where the run lives
     procedure : the validated procedure file (rebuilt from the stored text on resume)
     station : the devices, envelope and operator
-    science : the measurement core (``procedures._science.InstrumentScience``, or a fake)
+    science : the measurement core (``procedures.station._science.InstrumentScience``, or a fake)
     hooks : HookRunner, optional
     listener : callable(event dict), optional
         Progress, state changes and samples, for the terminal or ``--jsonl``.

@@ -37,7 +37,7 @@ from importlib.metadata import entry_points
 from typing import Any
 from urllib.parse import urlparse
 
-from procedures._models import HookSpec
+from procedures.station import HookSpec
 
 ENTRY_POINT_GROUP = "opr_instrument.hooks"
 QUEUE_CAPACITY = 1000  # events waiting per hook; more are logged as undelivered

@@ -12,10 +12,8 @@ from pydantic import BaseModel, ValidationError
 from pydantic_core import ErrorDetails
 
 from instrument.pose import Geometry
-from procedures._errors import ConfigError
-from procedures._models import StationFile
-from procedures._yamlmarks import MarkedYaml, load_marked
 from procedures.kinds import KINDS, ProcedureBase
+from procedures.station import ConfigError, MarkedYaml, StationFile, load_marked
 
 PACKAGE_DIR = Path(__file__).resolve().parent
 SCHEMA_DIR = PACKAGE_DIR / "schemas"

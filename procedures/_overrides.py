@@ -15,10 +15,9 @@ from typing import Any
 
 import yaml
 
-from procedures._errors import ConfigError
 from procedures._loading import load_procedure
-from procedures._yamlmarks import load_marked
 from procedures.kinds import ProcedureBase
+from procedures.station import ConfigError, load_marked
 
 MAX_OVERRIDE_CHARS = 10_000
 _KEY = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")

@@ -6,7 +6,7 @@ from __future__ import annotations
 import importlib
 import logging
 
-from procedures._errors import RunError
+from procedures.station import RunError
 
 
 class PdfUnavailable(RunError):

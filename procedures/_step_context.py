@@ -19,11 +19,7 @@ from drivers.camera import Frame, GrabFailed
 from drivers.interferometer import Interferometer
 from drivers.robot import MotionEnvelope, Robot
 from drivers.rotary_table import RotaryTable
-from procedures._errors import RunError
 from procedures._live_frames import write_live_frames
-from procedures._models import StationFile
-from procedures._science import COMPONENTS, Compensator, MeasurementFailed, PoseMeasurement, Science
-from procedures._station import StationRuntime
 from procedures.kinds import MotionParameters, PoseReading, Step, retry_wait
 from procedures.kinds._dynamic_stream import (
     StreamRecord,
@@ -32,6 +28,16 @@ from procedures.kinds._dynamic_stream import (
     compensate_with,
     distance_to,
     seconds_of,
+)
+from procedures.station import (
+    COMPONENTS,
+    Compensator,
+    MeasurementFailed,
+    PoseMeasurement,
+    RunError,
+    Science,
+    StationFile,
+    StationRuntime,
 )
 
 SCREENS = ("x", "y", "z")

@@ -34,9 +34,9 @@ from typing import Any
 
 import numpy as np
 
-from procedures._errors import RunLocked, StateConflict
 from procedures._run_state import RunState
 from procedures._store_db import SQLITE_FILE, Database, DuplicateStep, StoreError, connect, store_location
+from procedures.station import RunLocked, StateConflict
 
 __all__ = ["ROBOT_COLUMNS", "DuplicateStep", "Lease", "RunStore", "Sample", "StoreError", "StoredStream"]
 

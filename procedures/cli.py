@@ -36,8 +36,7 @@ from procedures import (
     _cmd_sim,
     _cmd_validate,
 )
-from procedures._errors import ConfigError, RunError
-from procedures._files import InputRefused
+from procedures.station import ConfigError, InputRefused, RunError
 
 COMMANDS = (_cmd_locate, _cmd_sim, _cmd_validate, _cmd_run, _cmd_resume, _cmd_runs, _cmd_show, _cmd_history,
             _cmd_report, _cmd_export, _cmd_serve)

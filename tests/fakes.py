@@ -25,8 +25,15 @@ from drivers.camera import Frame, GrabFailed
 from drivers.interferometer import DatumLost, EnvironmentReading, FeedGap, HeadOptics
 from drivers.robot import MotionEnvelope, ProtectiveStop, RobotIdentity, RobotState
 from drivers.rotary_table import TableState
-from procedures._geometry import euler_to_matrix, matrix_to_euler, tcp_in_m, ur_to_matrix
-from procedures._science import CalibrationResult, MeasurementFailed, PoseMeasurement
+from procedures.station import (
+    CalibrationResult,
+    MeasurementFailed,
+    PoseMeasurement,
+    euler_to_matrix,
+    matrix_to_euler,
+    tcp_in_m,
+    ur_to_matrix,
+)
 
 REFERENCE_TCP = [0.45, -0.10, 0.27, np.pi, 0.0, 0.0]
 TOOL_IN_OPR = [0.0, 0.0, 0.07, 0.0, 0.0, 0.0]

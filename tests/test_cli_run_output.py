@@ -17,9 +17,9 @@ import pytest
 from procedures._api import open_engine
 from procedures._cli_common import drive
 from procedures._cli_display import Display
-from procedures._errors import ConfigError
 from procedures._run_state import RunState
 from procedures.cli import main
+from procedures.station import ConfigError
 from tests.fakes import FakeCell, FakeScience, write_station
 
 ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
@@ -74,7 +74,7 @@ def test_held_out_residuals_of_a_real_calibration_fit_are_shown():
     import numpy as np
 
     from procedures._cli_results import calibration_lines, held_out_rows
-    from procedures._science import InstrumentScience
+    from procedures.station import InstrumentScience
 
     rng = np.random.default_rng(3)
     rows = []

@@ -22,9 +22,9 @@ from drivers.camera import PylonSettings
 from drivers.interferometer import SlcanSettings, SocketcandSettings
 from drivers.robot import URRtdeSettings
 from drivers.rotary_table import GcsSerialSettings, GcsTcpSettings, ModbusRtuSettings, ModbusTcpSettings
-from procedures._errors import ConfigError
 from procedures._loading import SCHEMA_DIR, load_station
 from procedures.cli import main
+from procedures.station import ConfigError
 from tests.fakes import station_dict
 
 

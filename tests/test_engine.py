@@ -8,9 +8,8 @@ import numpy as np
 import pytest
 
 from procedures._api import open_engine
-from procedures._errors import RunError
-from procedures._geometry import tcp_in_m
 from procedures._report import export_json, render_report
+from procedures.station import RunError, tcp_in_m
 from tests.fakes import REFERENCE_TCP, FakeCell, FakeScience, write_station
 
 

@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from procedures._truth import TruthLog
+from procedures.station import TruthLog
 from sim_devices.cell import SimCell
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -18,7 +18,7 @@ import pytest
 import procedures._hooks as hooks_module
 from procedures._api import open_engine
 from procedures._hooks import MAX_RESPONSE_BYTES, HookRunner
-from procedures._models import HookSpec
+from procedures.station import HookSpec
 from tests import fakes
 from tests.fakes import FakeCell, FakeScience, write_station
 

@@ -13,9 +13,7 @@ from pydantic import Field
 
 import procedures.kinds as kinds_module
 from procedures._api import open_engine
-from procedures._geometry import translated_in_frame
 from procedures._loading import json_schemas
-from procedures._models import StationFile, Vec3
 from procedures._run_state import RunState
 from procedures._store import Sample
 from procedures.cli import main
@@ -30,6 +28,7 @@ from procedures.kinds import (
     Step,
     StepContext,
 )
+from procedures.station import StationFile, Vec3, translated_in_frame
 from tests.fakes import FakeCell, FakeScience, write_station
 
 

@@ -6,8 +6,8 @@ import textwrap
 import pytest
 import yaml
 
-from procedures._errors import ConfigError
 from procedures._loading import SCHEMA_DIR, json_schemas, load_procedure, load_station
+from procedures.station import ConfigError
 from tests.fakes import station_dict
 
 

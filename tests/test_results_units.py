@@ -10,7 +10,6 @@ import yaml
 
 from instrument.environment import AirConditions
 from instrument.uncertainty import Correlation
-from procedures._models import StationFile
 from procedures.kinds._approach import pose_directions
 from procedures.kinds._calibration_results import before_after, off_axis_slopes
 from procedures.kinds._environment import environment_summary
@@ -23,6 +22,7 @@ from procedures.kinds._iso_budget import (
 )
 from procedures.kinds._iso_conditions import largest_cube_edge
 from procedures.kinds._references import scale_uncertainty
+from procedures.station import StationFile
 from tests.fakes import station_dict
 
 ARCSEC = math.pi / (180 * 3600)

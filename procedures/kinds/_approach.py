@@ -19,9 +19,8 @@ from typing import Any, Literal
 
 import numpy as np
 
-from procedures._geometry import matrix_to_euler, tcp_in_m, translated_in_frame
-from procedures._science import COMPONENTS
 from procedures.kinds._protocol import Step, StepContext
+from procedures.station import COMPONENTS, matrix_to_euler, tcp_in_m, translated_in_frame
 
 Approach = Literal["one", "both"]
 MOVED_M = 1e-6  # a component that moved less than this (m) is not approached from either side

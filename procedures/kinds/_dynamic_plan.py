@@ -16,13 +16,12 @@ import numpy as np
 from pydantic import Field
 
 from instrument.iso9283 import iso_cube_points
-from procedures._geometry import translated_in_frame
-from procedures._models import StationFile, Vec3
 from procedures.kinds._approach import pose_directions
 from procedures.kinds._conditions import operator_of, robot_identity, set_payload
 from procedures.kinds._parameters import MotionParameters
 from procedures.kinds._protocol import PoseReading, Reading, Step, StepContext
 from procedures.kinds._setups import OprOnRobot
+from procedures.station import StationFile, Vec3, translated_in_frame
 
 CYCLE_ORDER = ("P1", "P5", "P4", "P3", "P2")  # ISO 9283's cycle; each pose is approached from the one before it
 Point = Sequence[float] | np.ndarray  # a position in M (m)

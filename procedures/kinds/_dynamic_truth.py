@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from procedures._geometry import matrix_to_euler, ur_to_matrix
+from procedures.station import matrix_to_euler, ur_to_matrix
 
 
 class MoveTruth:

@@ -49,13 +49,13 @@ from instrument.uncertainty import (
     interferometer_terms,
     rotary_table_term,
 )
-from procedures._science import COMPONENTS
 from procedures.kinds._references import (
     HENE_WAVELENGTH_M,
     INTERFEROMETER_READING_NOISE_M,
     TABLE_ENCODER_UNCERTAINTY_RAD,
     scale_uncertainty,
 )
+from procedures.station import COMPONENTS
 
 INSTRUMENT_EXPANSION_PER_K = 23e-6  # the screens' frame: aluminium
 UNKNOWN_TEMPERATURE_HALF_WIDTH_K = 1.0

@@ -12,9 +12,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from procedures._geometry import translated_in_frame, ur_to_matrix
-from procedures._models import StationFile
-from procedures._science import COMPONENTS
+from procedures.station import COMPONENTS, StationFile, translated_in_frame, ur_to_matrix
 
 if TYPE_CHECKING:
     from procedures.kinds.iso9283_repeatability import IsoParameters

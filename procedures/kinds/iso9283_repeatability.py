@@ -16,8 +16,6 @@ import numpy as np
 from pydantic import Field
 
 from instrument.iso9283 import iso_cube_points
-from procedures._geometry import translated_in_frame
-from procedures._models import StationFile, Vec3
 from procedures._report_sections import iso_results_html
 from procedures._store import Sample
 from procedures.kinds._approach import pose_directions, robot_pose_in_m
@@ -27,6 +25,7 @@ from procedures.kinds._iso_analysis import analyse_iso
 from procedures.kinds._parameters import MotionParameters, ProcedureBase
 from procedures.kinds._protocol import Analysis, AnalysisContext, DeviceRole, Reading, Step, StepContext
 from procedures.kinds._setups import OprOnRobot
+from procedures.station import StationFile, Vec3, translated_in_frame
 
 
 def _paper_cube_center() -> list[float]:

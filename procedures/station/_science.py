@@ -29,8 +29,8 @@ from instrument.compensation import (
 from instrument.iso9283 import pose_accuracy, pose_repeatability
 from instrument.pose import Geometry, Pose, PoseError, fit_rigid_transform, predict_measurements, solve_pose
 from instrument.vision import CrossMeasurement, CrossNotFound, locate_cross
-from procedures._files import read_text_file
-from procedures._models import StationFile
+from procedures.station._files import read_text_file
+from procedures.station._models import StationFile
 
 COMPONENTS = ("x", "y", "z", "a", "b", "c")  # order of a (6,) pose in M; a, b, c = alpha, theta, gamma
 ANGLE_COMPONENT = {"x": "a", "y": "b", "z": "c"}  # rotation about M's axis k

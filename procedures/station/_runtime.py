@@ -17,7 +17,7 @@ from drivers.camera import Camera
 from drivers.interferometer import Interferometer
 from drivers.robot import MotionEnvelope, Robot
 from drivers.rotary_table import RotaryTable
-from procedures._models import StationFile
+from procedures.station._models import StationFile
 
 
 class Operator(Protocol):

@@ -1,6 +1,6 @@
 """Load YAML while remembering the line of every field, so errors can name ``file:line``.
 
-Input is not trusted: the file is read as a bounded, regular UTF-8 file (``procedures._files``),
+Input is not trusted: the file is read as a bounded, regular UTF-8 file (``procedures.station._files``),
 and the parsed node graph is checked before anything is built from it: no recursive alias, at
 most ``MAX_NODES`` nodes once aliases are expanded (a "billion laughs" file is refused, not
 expanded), at most ``MAX_DEPTH`` levels of nesting.
@@ -13,8 +13,8 @@ from typing import Any
 
 import yaml
 
-from procedures._errors import ConfigError
-from procedures._files import InputRefused, read_text_file
+from procedures.station._errors import ConfigError
+from procedures.station._files import InputRefused, read_text_file
 
 Path_ = tuple[Any, ...]
 MAX_NODES = 100_000
