@@ -15,8 +15,6 @@ from procedures._engine import RunEngine, create_run
 from procedures._hooks import HookRunner
 from procedures._loading import load_procedure, load_station, resolve_procedure_path
 from procedures._overrides import apply_overrides
-from procedures._run_state import PauseDecision
-from procedures._store import Lease, RunStore
 from procedures.station import (
     ConfigError,
     HookSpec,
@@ -29,6 +27,7 @@ from procedures.station import (
     StationRuntime,
     read_text_file,
 )
+from procedures.store import Lease, PauseDecision, RunStore
 
 
 def with_earlier_truth(station: StationFile, before: StationFile) -> StationFile:

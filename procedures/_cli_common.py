@@ -26,10 +26,8 @@ from typing import TYPE_CHECKING, Any, TextIO
 
 from procedures._cli_display import Display
 from procedures._cli_results import result_lines, result_summary
-from procedures._run_state import PauseDecision, RunState
-from procedures._store import RunStore
-from procedures._store_db import SQLITE_FILE, STORE_ENV, store_location
 from procedures.station import RunError
+from procedures.store import SQLITE_FILE, STORE_ENV, PauseDecision, RunState, RunStore, store_location
 
 if TYPE_CHECKING:  # only for annotations: the engine's stack loads with the commands that run one
     from procedures._engine import RunEngine

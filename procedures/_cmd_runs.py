@@ -8,7 +8,7 @@ import shutil
 import time
 
 from procedures._cli_common import READ_EXIT_CODES, add_runs_dir, open_store
-from procedures._run_state import RunState
+from procedures.store import RunState
 
 REASON_CHARS = 60
 

@@ -53,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
         if not 0 <= port <= 65535:
             return _problem(f"{name} {port}: expected 0..65535")
     if args.store is not None:
-        from procedures._store_db import STORE_ENV, StoreError, store_location
+        from procedures.store import STORE_ENV, StoreError, store_location
 
         try:
             store_location(args.store)

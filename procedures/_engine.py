@@ -32,9 +32,7 @@ from drivers.robot import EmergencyStop, ProtectiveStop
 from instrument import __version__
 from procedures._dry_run import collapse, plan_problems
 from procedures._hooks import HookRunner
-from procedures._run_state import RESUMABLE_STATES, PauseDecision, RunState
 from procedures._step_context import StationStepContext
-from procedures._store import Lease, RunStore
 from procedures.kinds import RESTING_SETUP, AnalysisContext, PoseReading, ProcedureBase, Setup, Step, kind_of
 from procedures.station import (
     Compensator,
@@ -48,6 +46,7 @@ from procedures.station import (
     StationRuntime,
     TruthLog,
 )
+from procedures.store import RESUMABLE_STATES, Lease, PauseDecision, RunState, RunStore
 
 _MAX_PROBLEMS_SHOWN = 50
 _PLURAL = {"cycle": "cycles", "axis": "axes", "group": "groups", "repeat": "repeats"}

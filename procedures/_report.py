@@ -16,8 +16,8 @@ from typing import Any
 from procedures._report_conditions import banner_html, conditions_html, name_note, report_title
 from procedures._report_format import display_json, first_line, key_value_table
 from procedures._report_style import stylesheet
-from procedures._store import Sample
 from procedures.kinds import KINDS
+from procedures.store import Sample
 
 
 def _time(stamp: float | None) -> str:

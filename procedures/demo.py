@@ -23,8 +23,7 @@ from procedures._api import open_engine
 from procedures._cli_display import Display
 from procedures._loading import resolve_procedure_path
 from procedures._report import render_report
-from procedures._run_state import RunState
-from procedures._store import RunStore
+from procedures.store import RunState, RunStore
 
 ARCSEC = np.pi / (180 * 3600)
 

@@ -17,9 +17,9 @@ import pytest
 from procedures._api import open_engine
 from procedures._cli_common import drive
 from procedures._cli_display import Display
-from procedures._run_state import RunState
 from procedures.cli import main
 from procedures.station import ConfigError
+from procedures.store import RunState
 from tests.fakes import FakeCell, FakeScience, write_station
 
 ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")

@@ -17,11 +17,10 @@ import yaml
 
 from instrument.iso9283 import pose_stabilisation
 from procedures._api import open_engine
-from procedures._run_state import RunState
-from procedures._store import RunStore
 from procedures.kinds._dynamic_analysis import tool_poses
 from procedures.kinds._dynamic_stream import COLUMNS, StreamRecord
 from procedures.station import ur_to_matrix
+from procedures.store import RunState, RunStore
 from tests.fakes import TOOL_IN_OPR, FakeCell, FakeScience, write_station
 
 pytestmark = pytest.mark.timeout(120)

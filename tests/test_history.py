@@ -12,10 +12,9 @@ import math
 import pytest
 
 from procedures._cli_results import ARCSEC, figure, iso_rows
-from procedures._run_state import RunState
-from procedures._store import RunStore
 from procedures.cli import main
 from procedures.serve._reader import StoreReader, iso_points
+from procedures.store import RunState, RunStore
 
 SERIAL = "20235500777"
 

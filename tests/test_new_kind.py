@@ -14,8 +14,6 @@ from pydantic import Field
 import procedures.kinds as kinds_module
 from procedures._api import open_engine
 from procedures._loading import json_schemas
-from procedures._run_state import RunState
-from procedures._store import Sample
 from procedures.cli import main
 from procedures.kinds import (
     Analysis,
@@ -29,6 +27,7 @@ from procedures.kinds import (
     StepContext,
 )
 from procedures.station import StationFile, Vec3, translated_in_frame
+from procedures.store import RunState, Sample
 from tests.fakes import FakeCell, FakeScience, write_station
 
 

@@ -15,8 +15,8 @@ import pytest
 import yaml
 
 import procedures._cmd_show
-from procedures._store import RunStore
 from procedures.cli import ERROR_LOG, main
+from procedures.store import RunStore
 from sim_devices.cell import SimCell
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -93,7 +93,7 @@ def test_default_pdf_path_is_in_the_runs_folder(iso_pdf, capsys):
 
 def test_pdf_of_stored_figures_shows_value_u_and_conditions(iso_pdf, tmp_path):
     run, _, tmp = iso_pdf
-    from procedures._store import RunStore
+    from procedures.store import RunStore
 
     with RunStore(tmp / "runs") as store:
         stored = with_stored_figures(as_stored_by_older_code(store.get_run(run["id"])))

@@ -19,9 +19,9 @@ import yaml
 
 from instrument.environment import AirConditions, wavelength_compensation_factor
 from procedures._api import open_engine
-from procedures._store import RunStore
 from procedures.cli import main
 from procedures.station import InstrumentScience
+from procedures.store import RunStore
 from tests.fakes import FakeCell, FakeScience, station_dict
 
 ARCSEC = np.pi / (180 * 3600)

@@ -12,8 +12,8 @@ import pytest
 
 from instrument.vision import locate_cross
 from procedures._api import open_engine
-from procedures._store import RunStore
 from procedures.serve import StoreReader, WebSettings, create_app, latest_frames, stripe_lines, write_live_frames
+from procedures.store import RunStore
 from tests.fakes import FakeCell, FakeScience, write_station
 from tests.synthetic_cross import render_cross
 

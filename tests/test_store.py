@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from procedures._api import open_engine
-from procedures._store import DuplicateStep, RunStore
+from procedures.store import DuplicateStep, RunStore
 from tests.fakes import FakeCell, FakeScience, write_station
 
 ROOT = Path(__file__).resolve().parents[1]

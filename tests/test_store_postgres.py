@@ -17,11 +17,9 @@ from pathlib import Path
 import pytest
 
 from procedures._api import open_engine
-from procedures._run_state import RunState
-from procedures._store import DuplicateStep, RunStore, StoreError
-from procedures._store_schema import LATEST
 from procedures.cli import main
 from procedures.station import RunLocked, StateConflict
+from procedures.store import LATEST, DuplicateStep, RunState, RunStore, StoreError
 from tests._postgres import postgres_server
 from tests.fakes import FakeCell, FakeScience, write_station
 
@@ -82,7 +80,7 @@ def test_samples_events_and_prefixes_as_on_sqlite(url, tmp_path):
 _TRY_LEASE = """
 import sys
 from procedures.station._errors import RunLocked
-from procedures._store import RunStore
+from procedures.store._store import RunStore
 with RunStore(sys.argv[1], url=sys.argv[2]) as store:
     try:
         store.acquire_lease(sys.argv[3])

@@ -25,9 +25,8 @@ from pathlib import Path
 import pytest
 
 from procedures._api import open_engine
-from procedures._run_state import RunState
-from procedures._store import RunStore
 from procedures.cli import main
+from procedures.store import RunState, RunStore
 from tests.fakes import FakeCell, FakeScience
 from tests.stored_outputs import digest, outputs
 
@@ -203,7 +202,7 @@ def _rows(db: Path, query: str) -> list[tuple]:
 
 @pytest.mark.parametrize("written_by", ["5786d73", "before schema versions"])
 def test_an_older_store_is_migrated_in_place_keeping_every_row(runs_dir, written_by):
-    from procedures._store_schema import LATEST, MIGRATIONS
+    from procedures.store import LATEST, MIGRATIONS
 
     db = runs_dir / "runs.sqlite"
     if written_by != "5786d73":  # the store as the code just before schema versions left it: two more tables

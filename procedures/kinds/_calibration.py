@@ -13,7 +13,6 @@ from pydantic import ValidationInfo
 
 from instrument import __version__
 from instrument.environment import AirConditions
-from procedures._store import Sample
 from procedures.kinds._calibration_results import (
     add_datum_removed_curves,
     before_after,
@@ -33,6 +32,7 @@ from procedures.kinds._references import (
     table_reference,
 )
 from procedures.station import COMPONENTS
+from procedures.store import Sample
 
 MAX_PLAN_STEPS = 100_000
 """Largest plan a procedure file may ask for (a 30-cycle ISO run is 155 steps, the paper's

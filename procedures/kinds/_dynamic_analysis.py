@@ -37,11 +37,11 @@ from instrument.iso9283 import (
     path_velocity,
     pose_stabilisation,
 )
-from procedures._store import Sample
 from procedures.kinds._dynamic_stream import StreamRecord
 from procedures.kinds._dynamic_truth import MoveTruth
 from procedures.kinds._protocol import AnalysisContext
 from procedures.station import euler_to_matrix, matrix_to_euler, tcp_in_m, ur_to_matrix
+from procedures.store import Sample
 
 SERIES_POINTS = 400  # samples kept per plotted series
 DEFAULT_BAND_M = 10e-6

@@ -11,7 +11,7 @@ recomputed once the clock models are fitted from all the pairs, and the three fr
 whose times then differ by more than ``MAX_TIMESTAMP_SPREAD_S`` are dropped (not one trigger).
 
 ``StreamRecord`` is what the run store keeps per move (``encode``/``decode``: one compressed binary
-column of float64 arrays, ``procedures._store.StoredStream``).
+column of float64 arrays, ``procedures.store._store.StoredStream``).
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from procedures._store import StoredStream
+from procedures.store import StoredStream
 
 FORMAT = "f8le-zlib/1"
 COLUMNS = ("index", "t", "x", "y", "z", "a", "b", "c", "raw_x", "raw_y", "raw_z", "raw_a", "raw_b", "raw_c",

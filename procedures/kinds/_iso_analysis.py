@@ -17,7 +17,6 @@ import numpy as np
 
 from instrument import __version__
 from instrument.uncertainty import CoverageCase, IsoRun, UncertaintyBudget, UncertaintyError, iso_uncertainty
-from procedures._store import Sample
 from procedures.kinds._calibration import RESULTS_VERSION
 from procedures.kinds._conditions import local_time, sessions_of
 from procedures.kinds._environment import environment_summary
@@ -25,6 +24,7 @@ from procedures.kinds._iso_budget import BudgetUnavailable, iso_budget, squarene
 from procedures.kinds._iso_conditions import deviations_of, test_conditions
 from procedures.kinds._protocol import AnalysisContext
 from procedures.station import COMPONENTS, Compensator, euler_to_matrix, matrix_to_euler, tcp_in_m, ur_to_matrix
+from procedures.store import Sample
 
 if TYPE_CHECKING:
     from procedures.kinds.iso9283_repeatability import IsoParameters

@@ -16,10 +16,10 @@ from typing import Any, Literal, Protocol, TypeVar
 from drivers.interferometer import Interferometer
 from drivers.robot import Robot
 from drivers.rotary_table import RotaryTable
-from procedures._store import Sample
 from procedures.kinds._parameters import MotionParameters, ProcedureBase
 from procedures.kinds._setups import Setup
 from procedures.station import Compensator, Science, StationFile, TruthLog
+from procedures.store import Sample
 
 DeviceRole = Literal["robot", "rotary_table", "interferometer"]  # the cameras serve every kind
 

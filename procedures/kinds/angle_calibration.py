@@ -17,7 +17,6 @@ import numpy as np
 from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from procedures._report_sections import calibration_results_html, calibration_summary_lines
-from procedures._store import Sample
 from procedures.kinds._approach import Approach, approach_table, directions_of
 from procedures.kinds._calibration import (
     analyse_calibration,
@@ -30,6 +29,7 @@ from procedures.kinds._parameters import AxisName, MotionParameters, ProcedureBa
 from procedures.kinds._protocol import Analysis, AnalysisContext, DeviceRole, Reading, Step, StepContext
 from procedures.kinds._setups import OprOnTable
 from procedures.station import ANGLE_COMPONENT, COMPONENTS, StationFile
+from procedures.store import Sample
 
 
 def _paper_group_offsets() -> list[float]:

@@ -31,7 +31,6 @@ from drivers import DeviceConnectionError, DeviceFault
 from drivers.interferometer import BeamInterrupted, FeedGap
 from instrument.environment import AirConditions, AirConditionsError
 from procedures._report_sections import calibration_results_html, calibration_summary_lines
-from procedures._store import Sample
 from procedures.kinds._approach import Approach, approach_on_line, directions_of, note_line_position, robot_pose_in_m
 from procedures.kinds._calibration import (
     analyse_calibration,
@@ -46,6 +45,7 @@ from procedures.kinds._protocol import Analysis, AnalysisContext, DeviceRole, Re
 from procedures.kinds._references import compensate
 from procedures.kinds._setups import InterferometerAligned
 from procedures.station import StationFile, Vec3, translated_in_frame
+from procedures.store import Sample
 
 AXIS_INDEX = {"x": 0, "y": 1, "z": 2}
 READ_ATTEMPTS = 3  # interferometer readings per step (a lost datum or a feed gap in between is repaired)

@@ -17,7 +17,6 @@ from pydantic import Field
 
 from instrument.iso9283 import iso_cube_points
 from procedures._report_sections import iso_results_html
-from procedures._store import Sample
 from procedures.kinds._approach import pose_directions, robot_pose_in_m
 from procedures.kinds._conditions import operator_of, robot_identity, set_payload, warm_up
 from procedures.kinds._environment import environment_record, read_environment
@@ -26,6 +25,7 @@ from procedures.kinds._parameters import MotionParameters, ProcedureBase
 from procedures.kinds._protocol import Analysis, AnalysisContext, DeviceRole, Reading, Step, StepContext
 from procedures.kinds._setups import OprOnRobot
 from procedures.station import StationFile, Vec3, translated_in_frame
+from procedures.store import Sample
 
 
 def _paper_cube_center() -> list[float]:

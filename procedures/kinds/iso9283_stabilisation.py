@@ -17,7 +17,6 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import Field
 
-from procedures._store import Sample
 from procedures.kinds._dynamic_analysis import (
     band_of,
     positioning_times,
@@ -42,6 +41,7 @@ from procedures.kinds._dynamic_truth import truths_of
 from procedures.kinds._parameters import ProcedureBase
 from procedures.kinds._protocol import Analysis, AnalysisContext, DeviceRole, Reading, Step, StepContext
 from procedures.station import StationFile, ur_to_matrix
+from procedures.store import Sample
 
 PointName = Literal["P1", "P2", "P3", "P4", "P5"]
 

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from procedures._live_frames import DEFAULT_SCALE, LIVE_DIR, LIVE_INDEX, SCREENS, png_of
-from procedures._store import Sample
+from procedures.store import Sample
 
 
 def stripe_lines(cross: Mapping[str, Any], width: float, height: float) -> dict[str, Any]:

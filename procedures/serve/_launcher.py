@@ -25,9 +25,8 @@ from typing import Any
 import yaml
 
 from procedures._loading import load_procedure, resolve_procedure_path
-from procedures._run_state import RunState
-from procedures._store import RunStore
 from procedures.station import ConfigError, RunLocked, StateConflict
+from procedures.store import RunState, RunStore
 
 
 class LaunchRefused(ValueError):

@@ -19,8 +19,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from procedures._run_state import RunState
-from procedures._store import RunStore, Sample
+from procedures.store import RunState, RunStore, Sample
 
 T = TypeVar("T")
 

@@ -29,8 +29,8 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any, Protocol
 
-from procedures._store_schema import LATEST, MIGRATIONS, VERSION_TABLE, version_from_tables
 from procedures.station import RunError
+from procedures.store._schema import LATEST, MIGRATIONS, VERSION_TABLE, version_from_tables
 
 STORE_ENV = "INSTRUMENT_STORE"
 SQLITE_FILE = "runs.sqlite"

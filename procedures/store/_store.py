@@ -17,7 +17,7 @@ state the engine last saw *and* on its lease token (PostgreSQL: the lease row he
 meanwhile, so a take-over waits for it), so a process that lost its lease can never flip a run's state.
 
 The databases themselves (connection, placeholders, transactions, the change counter) are in
-``procedures._store_db``; the schema and its versioned migrations in ``procedures._store_schema``.
+``procedures.store._db``; the schema and its versioned migrations in ``procedures.store._schema``.
 """
 
 from __future__ import annotations
@@ -34,9 +34,9 @@ from typing import Any
 
 import numpy as np
 
-from procedures._run_state import RunState
-from procedures._store_db import SQLITE_FILE, Database, DuplicateStep, StoreError, connect, store_location
 from procedures.station import RunLocked, StateConflict
+from procedures.store._db import SQLITE_FILE, Database, DuplicateStep, StoreError, connect, store_location
+from procedures.store._run_state import RunState
 
 __all__ = ["ROBOT_COLUMNS", "DuplicateStep", "Lease", "RunStore", "Sample", "StoreError", "StoredStream"]
 
@@ -150,7 +150,7 @@ class RunStore:
     timeout : seconds to wait for a lock or a connection
 
     One connection per store object, used from one thread at a time (the engine's). Opening a store
-    migrates it to the latest schema version (``procedures._store_schema``).
+    migrates it to the latest schema version (``procedures.store._schema``).
     """
 
     def __init__(self, runs_dir: str | Path, *, url: str | None = None, timeout: float = 30.0) -> None:
