@@ -35,7 +35,7 @@ import yaml
 from instrument.uncertainty import CoverageTable, coverage_study
 from procedures._api import open_engine
 from procedures._loading import resolve_procedure_path
-from procedures.kinds._iso_analysis import coverage_case
+from procedures.kinds.iso import coverage_case
 
 FAMILIES = {
     "RP_l, RP_a/b/c": ("rp_l", "rp_a", "rp_b", "rp_c"),

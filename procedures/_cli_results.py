@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from procedures.kinds._dynamic_export import DYNAMIC_KINDS, dynamic_figures
+from procedures.kinds.dynamic import DYNAMIC_KINDS, dynamic_figures
 
 ARCSEC = math.pi / (180 * 3600)
 ISO_FIGURES = (("rp_l", "RP_l", "µm", 1e6), ("rp_a", "RP_a", "″", 1 / ARCSEC), ("rp_b", "RP_b", "″", 1 / ARCSEC),

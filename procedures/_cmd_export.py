@@ -29,7 +29,7 @@ def register(subparsers) -> None:
 
 def run(args) -> int:
     from procedures._report import export_csv, export_json  # the measurement stack loads only when needed
-    from procedures.kinds._export import normalised_results
+    from procedures.kinds import normalised_results
 
     with open_store(args) as store:
         r = find_run(store, args.run_id)
@@ -42,7 +42,7 @@ def run(args) -> int:
             document = json.loads(export_json(r, samples, store.events(r["id"]), store.superseded_samples(r["id"])))
             document["results"] = normalised_results(r)
             if args.streams:
-                from procedures.kinds._dynamic_stream import StreamRecord
+                from procedures.kinds import StreamRecord
 
                 document["streams"] = [{"step": step, **StreamRecord.from_stored(stored).arrays(),
                                         "meta": stored.meta} for step, stored in store.streams(r["id"]).items()]

@@ -20,13 +20,16 @@ from drivers.interferometer import Interferometer
 from drivers.robot import MotionEnvelope, Robot
 from drivers.rotary_table import RotaryTable
 from procedures._live_frames import write_live_frames
-from procedures.kinds import MotionParameters, PoseReading, Step, retry_wait
-from procedures.kinds._dynamic_stream import (
+from procedures.kinds import (
+    MotionParameters,
+    PoseReading,
+    Step,
     StreamRecord,
     Tracker,
     acquire_stream,
     compensate_with,
     distance_to,
+    retry_wait,
     seconds_of,
 )
 from procedures.station import (

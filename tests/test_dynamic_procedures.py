@@ -17,8 +17,8 @@ import yaml
 
 from instrument.iso9283 import pose_stabilisation
 from procedures._api import open_engine
-from procedures.kinds._dynamic_analysis import tool_poses
-from procedures.kinds._dynamic_stream import COLUMNS, StreamRecord
+from procedures.kinds import COLUMNS, StreamRecord
+from procedures.kinds.dynamic import tool_poses
 from procedures.station import ur_to_matrix
 from procedures.store import RunState, RunStore
 from tests.fakes import TOOL_IN_OPR, FakeCell, FakeScience, write_station

@@ -18,9 +18,8 @@ from hypothesis import strategies as st
 
 from procedures._loading import load_procedure
 from procedures.kinds import KINDS, ProcedureBase
-from procedures.kinds.angle_calibration import AngleParameters
-from procedures.kinds.displacement_calibration import DisplacementParameters
-from procedures.kinds.iso9283_repeatability import IsoParameters
+from procedures.kinds.calibration import AngleParameters, DisplacementParameters
+from procedures.kinds.iso import IsoParameters
 from procedures.station import ConfigError, StationFile, tcp_in_m
 from tests.fakes import station_dict
 

@@ -20,7 +20,7 @@ from instrument.compensation import CalibrationRecord
 from instrument.uncertainty import coverage_study
 from procedures._api import open_engine
 from procedures._loading import resolve_procedure_path
-from procedures.kinds._iso_analysis import coverage_case
+from procedures.kinds.iso import coverage_case
 from sim_devices.cell import SimCell
 
 ARCSEC = np.pi / (180 * 3600)

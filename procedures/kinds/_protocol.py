@@ -22,6 +22,7 @@ from procedures.station import Compensator, Science, StationFile, TruthLog
 from procedures.store import Sample
 
 DeviceRole = Literal["robot", "rotary_table", "interferometer"]  # the cameras serve every kind
+RESULTS_VERSION = 2  # the layout of the results the kinds write (docs/results.md); results stored before it have none
 
 
 @dataclass(frozen=True)

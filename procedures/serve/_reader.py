@@ -150,7 +150,7 @@ class StoreReader:
         """The newest stored pose stream of a run measured in motion (None: it has none), for the live
         page's panel: ``step``, ``key``, ``t`` (s from the robot's done signal), ``distance`` (m, to the
         attained pose: the mean of the stream's last fifth), ``rate_hz``, ``dropped``, ``poses``."""
-        from procedures.kinds._dynamic_stream import StreamRecord
+        from procedures.kinds import StreamRecord
 
         def compute() -> dict[str, Any] | None:
             with self._lock:

@@ -170,7 +170,7 @@ CREATE TRIGGER events_changed AFTER INSERT OR UPDATE OR DELETE ON events
 """
 
 # Issue 16: the pose stream of a move measured in motion. One row per move (per step), its samples as
-# one compressed binary column (``procedures.kinds._dynamic_stream`` encodes it: float64 columns t,
+# one compressed binary column (``procedures.kinds._stream`` encodes it: float64 columns t,
 # pose, raw pose, quality), not one row per frame: a move is hundreds of samples and a run thousands
 # of moves. Written in the same transaction as the step's sample, so it is committed with it.
 def _v5(blob: str) -> str:

@@ -125,7 +125,7 @@ class Sample:
 class StoredStream:
     """The pose stream of one step (a move measured in motion), as the store keeps it: one row.
 
-    ``data`` is opaque to the store (``procedures.kinds._dynamic_stream`` encodes and decodes it);
+    ``data`` is opaque to the store (``procedures.kinds._stream`` encodes and decodes it);
     ``format`` names the encoding, ``samples`` the rows, ``columns`` their names, ``meta`` the
     JSON-able rest (rate, drops, the robot's done time ...).
     """

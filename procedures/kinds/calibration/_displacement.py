@@ -32,18 +32,18 @@ from drivers.interferometer import BeamInterrupted, FeedGap
 from instrument.environment import AirConditions, AirConditionsError
 from procedures._report_sections import calibration_results_html, calibration_summary_lines
 from procedures.kinds._approach import Approach, approach_on_line, directions_of, note_line_position, robot_pose_in_m
-from procedures.kinds._calibration import (
+from procedures.kinds._environment import environment_record
+from procedures.kinds._parameters import AxisName, MotionParameters, ProcedureBase, all_axes, retry_wait
+from procedures.kinds._protocol import Analysis, AnalysisContext, DeviceRole, Reading, Step, StepContext
+from procedures.kinds._references import compensate
+from procedures.kinds._setups import InterferometerAligned
+from procedures.kinds.calibration._common import (
     analyse_calibration,
     check_calibration_size,
     check_record_path,
     inclusive_range,
     line_points,
 )
-from procedures.kinds._environment import environment_record
-from procedures.kinds._parameters import AxisName, MotionParameters, ProcedureBase, all_axes, retry_wait
-from procedures.kinds._protocol import Analysis, AnalysisContext, DeviceRole, Reading, Step, StepContext
-from procedures.kinds._references import compensate
-from procedures.kinds._setups import InterferometerAligned
 from procedures.station import StationFile, Vec3, translated_in_frame
 from procedures.store import Sample
 

@@ -18,16 +18,16 @@ from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from procedures._report_sections import calibration_results_html, calibration_summary_lines
 from procedures.kinds._approach import Approach, approach_table, directions_of
-from procedures.kinds._calibration import (
+from procedures.kinds._parameters import AxisName, MotionParameters, ProcedureBase, all_axes
+from procedures.kinds._protocol import Analysis, AnalysisContext, DeviceRole, Reading, Step, StepContext
+from procedures.kinds._setups import OprOnTable
+from procedures.kinds.calibration._common import (
     analyse_calibration,
     check_calibration_size,
     check_record_path,
     inclusive_range,
     line_points,
 )
-from procedures.kinds._parameters import AxisName, MotionParameters, ProcedureBase, all_axes
-from procedures.kinds._protocol import Analysis, AnalysisContext, DeviceRole, Reading, Step, StepContext
-from procedures.kinds._setups import OprOnTable
 from procedures.station import ANGLE_COMPONENT, COMPONENTS, StationFile
 from procedures.store import Sample
 

@@ -11,23 +11,20 @@ transform fitted on the true positions of the transform pass (see docs/results.m
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from instrument import __version__
 from instrument.uncertainty import CoverageCase, IsoRun, UncertaintyBudget, UncertaintyError, iso_uncertainty
-from procedures.kinds._calibration import RESULTS_VERSION
 from procedures.kinds._conditions import local_time, sessions_of
 from procedures.kinds._environment import environment_summary
-from procedures.kinds._iso_budget import BudgetUnavailable, iso_budget, squareness_terms
-from procedures.kinds._iso_conditions import deviations_of, test_conditions
-from procedures.kinds._protocol import AnalysisContext
+from procedures.kinds._protocol import RESULTS_VERSION, AnalysisContext
+from procedures.kinds.iso._budget import BudgetUnavailable, iso_budget, squareness_terms
+from procedures.kinds.iso._parameters import IsoParameters
+from procedures.kinds.iso._test_conditions import deviations_of, test_conditions
 from procedures.station import COMPONENTS, Compensator, euler_to_matrix, matrix_to_euler, tcp_in_m, ur_to_matrix
 from procedures.store import Sample
-
-if TYPE_CHECKING:
-    from procedures.kinds.iso9283_repeatability import IsoParameters
 
 DISTANCE_PAIR = ("P2", "P4")  # ISO 9283 §7.? distance accuracy and repeatability: P2 → P4 (the cube's diagonal)
 LINEAR_FIGURES = {"rp_l", "ap_p", "ap_x", "ap_y", "ap_z"}

@@ -8,14 +8,12 @@ by hand. Shapes: docs/results.md ("test_conditions", "deviations").
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
+from procedures.kinds.iso._parameters import IsoParameters, cube_path
 from procedures.station import COMPONENTS, StationFile, translated_in_frame, ur_to_matrix
-
-if TYPE_CHECKING:
-    from procedures.kinds.iso9283_repeatability import IsoParameters
 
 STANDARD = "ISO 9283:1998"
 ISO_CYCLES = 30
@@ -53,8 +51,6 @@ def test_conditions(params: IsoParameters, station: StationFile, points: Mapping
                                                    "set_on_robot": False})
     payload["rated_mass_kg"] = None if rated is None else rated.payload
     payload["percent_of_rated"] = _percent(payload.get("mass_kg"), payload["rated_mass_kg"])
-    from procedures.kinds.iso9283_repeatability import cube_path  # the plan's own geometry (no import cycle)
-
     reference = station.frames.reference_tcp_pose
     cube_points = {label: {"in_m": in_m, "in_base": tcp} for label, in_m, tcp in cube_path(params, station)}
     applied_ids = {info.get("id") for info in applied}

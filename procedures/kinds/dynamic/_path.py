@@ -16,7 +16,9 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import Field
 
-from procedures.kinds._dynamic_analysis import (
+from procedures.kinds._parameters import ProcedureBase
+from procedures.kinds._protocol import Analysis, AnalysisContext, DeviceRole, Reading, Step, StepContext
+from procedures.kinds.dynamic._analysis import (
     circle_command,
     commanded_tool,
     compensation_position_rms,
@@ -32,7 +34,7 @@ from procedures.kinds._dynamic_analysis import (
     truth_for,
     velocity_figures,
 )
-from procedures.kinds._dynamic_plan import (
+from procedures.kinds.dynamic._plan import (
     CYCLE_ORDER,
     DynamicParameters,
     approach_direction,
@@ -44,9 +46,7 @@ from procedures.kinds._dynamic_plan import (
     stream_problem,
     stream_reading,
 )
-from procedures.kinds._dynamic_truth import truths_of
-from procedures.kinds._parameters import ProcedureBase
-from procedures.kinds._protocol import Analysis, AnalysisContext, DeviceRole, Reading, Step, StepContext
+from procedures.kinds.dynamic._truth import truths_of
 from procedures.station import StationFile, ur_to_matrix
 from procedures.store import Sample
 

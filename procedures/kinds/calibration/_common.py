@@ -13,23 +13,23 @@ from pydantic import ValidationInfo
 
 from instrument import __version__
 from instrument.environment import AirConditions
-from procedures.kinds._calibration_results import (
+from procedures.kinds._conditions import local_time, operator_of
+from procedures.kinds._environment import environment_summary
+from procedures.kinds._parameters import MotionParameters
+from procedures.kinds._protocol import RESULTS_VERSION, Analysis, AnalysisContext
+from procedures.kinds._references import (
+    HENE_WAVELENGTH_M,
+    interferometer_reference,
+    scale_uncertainty,
+    table_reference,
+)
+from procedures.kinds.calibration._results import (
     add_datum_removed_curves,
     before_after,
     evaluation_view,
     off_axis_slopes,
     reference_vs_truth,
     residual_uncertainties,
-)
-from procedures.kinds._conditions import local_time, operator_of
-from procedures.kinds._environment import environment_summary
-from procedures.kinds._parameters import MotionParameters
-from procedures.kinds._protocol import Analysis, AnalysisContext
-from procedures.kinds._references import (
-    HENE_WAVELENGTH_M,
-    interferometer_reference,
-    scale_uncertainty,
-    table_reference,
 )
 from procedures.station import COMPONENTS
 from procedures.store import Sample
@@ -39,7 +39,6 @@ MAX_PLAN_STEPS = 100_000
 displacement calibration 405); more is a typo such as ``step_mm: 1e-9``, refused before any plan."""
 MIN_POINTS_PER_LINE = 5  # instrument.compensation.calibrate leaves one point out over at least 5 points
 MIN_REPEATS = 2  # ... and estimates its noise floor from repeated observations at a point
-RESULTS_VERSION = 2  # docs/results.md; results stored before it have no version
 
 
 def line_points(start: float, stop: float, step: float) -> int:

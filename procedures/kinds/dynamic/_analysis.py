@@ -37,9 +37,10 @@ from instrument.iso9283 import (
     path_velocity,
     pose_stabilisation,
 )
-from procedures.kinds._dynamic_stream import StreamRecord
-from procedures.kinds._dynamic_truth import MoveTruth
 from procedures.kinds._protocol import AnalysisContext
+from procedures.kinds._stream import StreamRecord
+from procedures.kinds.dynamic._plan import tcp_at
+from procedures.kinds.dynamic._truth import MoveTruth
 from procedures.station import euler_to_matrix, matrix_to_euler, tcp_in_m, ur_to_matrix
 from procedures.store import Sample
 
@@ -216,8 +217,6 @@ def commanded_tool(ctx: AnalysisContext, fitted: np.ndarray, point_in_m: Sequenc
                    ) -> np.ndarray:
     """(6,) the commanded tool pose for an OPR point in nominal M, in the measured frame."""
     reference = ctx.station.frames.reference_tcp_pose
-    from procedures.kinds._dynamic_plan import tcp_at
-
     opr_to_tool = ur_to_matrix(ctx.station.frames.tool_in_opr)
     return matrix_to_euler(fitted @ tcp_in_m(reference, tcp_at(ctx.station, point_in_m)) @ opr_to_tool)
 
