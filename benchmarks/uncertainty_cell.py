@@ -33,8 +33,7 @@ import numpy as np
 import yaml
 
 from instrument.uncertainty import CoverageTable, coverage_study
-from procedures._api import open_engine
-from procedures._loading import resolve_procedure_path
+from procedures.engine import open_engine, resolve_procedure_path
 from procedures.kinds.iso import coverage_case
 
 FAMILIES = {

@@ -26,11 +26,12 @@ from typing import TYPE_CHECKING, Any, TextIO
 
 from procedures._cli_display import Display
 from procedures._cli_results import result_lines, result_summary
+from procedures.engine import PauseDecision
 from procedures.station import RunError
-from procedures.store import SQLITE_FILE, STORE_ENV, PauseDecision, RunState, RunStore, store_location
+from procedures.store import SQLITE_FILE, STORE_ENV, RunState, RunStore, store_location
 
 if TYPE_CHECKING:  # only for annotations: the engine's stack loads with the commands that run one
-    from procedures._engine import RunEngine
+    from procedures.engine import RunEngine
 
 __all__ = ["EXIT_CODES", "Display", "add_display", "add_runs_dir", "console_pause_handler", "detach_at_once",
            "drive", "open_store", "signals_control", "station_for"]

@@ -37,7 +37,7 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from procedures._api import open_engine
+    from procedures.engine import open_engine
 
     with open_store(args) as store:
         try:

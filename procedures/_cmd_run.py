@@ -45,7 +45,7 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from procedures._api import open_engine
+    from procedures.engine import open_engine
 
     mode = "jsonl" if args.jsonl else "quiet" if args.quiet else "bar"
     display = Display(mode)

@@ -31,7 +31,7 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from procedures._loading import detect_kind, load_procedure, load_station  # loads the measurement stack
+    from procedures.engine import detect_kind, load_procedure, load_station  # loads the measurement stack
 
     status = 0
     stations, procedures = [], []
@@ -70,8 +70,7 @@ def run(args) -> int:
 
 
 def _record_problems(station) -> list[str]:
-    from procedures._dry_run import collapse, record_problems
-    from procedures._engine import record_paths
+    from procedures.engine import collapse, record_paths, record_problems
     from procedures.station import InstrumentScience
 
     return collapse(record_problems(record_paths(station), InstrumentScience()))
@@ -79,7 +78,7 @@ def _record_problems(station) -> list[str]:
 
 def _dry_run(station, procedure) -> tuple[list[str], int]:
     from drivers.robot import MotionEnvelope
-    from procedures._dry_run import collapse, offline_problems
+    from procedures.engine import collapse, offline_problems
     from procedures.kinds import kind_of
     from procedures.station import InstrumentScience
 

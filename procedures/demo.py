@@ -19,10 +19,9 @@ from typing import Any
 import numpy as np
 import yaml
 
-from procedures._api import open_engine
 from procedures._cli_display import Display
-from procedures._loading import resolve_procedure_path
 from procedures._report import render_report
+from procedures.engine import open_engine, resolve_procedure_path
 from procedures.store import RunState, RunStore
 
 ARCSEC = np.pi / (180 * 3600)
@@ -71,7 +70,7 @@ class DemoProgress:
 
 def plan_sizes(procedures: list[Path], station: Path) -> list[tuple[int, int]]:
     """Planned poses and set-up changes of each procedure on the station (the plans are pure functions)."""
-    from procedures._loading import load_procedure, load_station
+    from procedures.engine import load_procedure, load_station
     from procedures.kinds import kind_of
 
     model = load_station(station)

@@ -625,7 +625,7 @@ def main(argv: list[str]) -> int:
     """Child-process entry for the kill -9 test."""
     import argparse
 
-    from procedures._api import open_engine
+    from procedures.engine import open_engine
 
     parser = argparse.ArgumentParser()
     parser.add_argument("runs_dir")

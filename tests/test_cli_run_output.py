@@ -14,10 +14,10 @@ from pathlib import Path
 
 import pytest
 
-from procedures._api import open_engine
 from procedures._cli_common import drive
 from procedures._cli_display import Display
 from procedures.cli import main
+from procedures.engine import open_engine
 from procedures.station import ConfigError
 from procedures.store import RunState
 from tests.fakes import FakeCell, FakeScience, write_station

@@ -16,7 +16,7 @@ import pytest
 import yaml
 
 from instrument.iso9283 import pose_stabilisation
-from procedures._api import open_engine
+from procedures.engine import open_engine
 from procedures.kinds import COLUMNS, StreamRecord
 from procedures.kinds.dynamic import tool_poses
 from procedures.station import ur_to_matrix

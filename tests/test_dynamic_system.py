@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from procedures._api import open_engine
+from procedures.engine import open_engine
 from procedures.store import RunState
 from sim_devices.camera import IDEAL_OPTICS
 from sim_devices.cell import SimCell

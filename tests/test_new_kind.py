@@ -12,9 +12,8 @@ import pytest
 from pydantic import Field
 
 import procedures.kinds as kinds_module
-from procedures._api import open_engine
-from procedures._loading import json_schemas
 from procedures.cli import main
+from procedures.engine import json_schemas, open_engine
 from procedures.kinds import (
     Analysis,
     AnalysisContext,

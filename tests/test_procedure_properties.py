@@ -16,7 +16,7 @@ import yaml
 from hypothesis import find, given, settings
 from hypothesis import strategies as st
 
-from procedures._loading import load_procedure
+from procedures.engine import load_procedure
 from procedures.kinds import KINDS, ProcedureBase
 from procedures.kinds.calibration import AngleParameters, DisplacementParameters
 from procedures.kinds.iso import IsoParameters

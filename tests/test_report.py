@@ -18,9 +18,9 @@ from pathlib import Path
 
 import pytest
 
-from procedures._api import open_engine
 from procedures._report import export_csv, export_json, render_report
 from procedures._report_conditions import quantity
+from procedures.engine import open_engine
 from tests.fakes import FakeCell, FakeScience, write_station
 
 ARCSEC = math.pi / (180 * 3600)

@@ -18,8 +18,8 @@ import pytest
 import yaml
 
 from instrument.environment import AirConditions, wavelength_compensation_factor
-from procedures._api import open_engine
 from procedures.cli import main
+from procedures.engine import open_engine
 from procedures.station import InstrumentScience
 from procedures.store import RunStore
 from tests.fakes import FakeCell, FakeScience, station_dict

@@ -13,9 +13,9 @@ from pathlib import Path
 
 import pytest
 
-from procedures._api import open_engine
 from procedures._cli_common import cell_directory
 from procedures.cli import main
+from procedures.engine import open_engine
 from procedures.station import RunLocked, StateConflict
 from procedures.store import RunState, RunStore
 from tests.fakes import FakeCell, FakeScience, write_station

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from instrument.vision import locate_cross
-from procedures._api import open_engine
+from procedures.engine import open_engine
 from procedures.serve import StoreReader, WebSettings, create_app, latest_frames, stripe_lines, write_live_frames
 from procedures.store import RunStore
 from tests.fakes import FakeCell, FakeScience, write_station

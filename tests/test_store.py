@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from procedures._api import open_engine
+from procedures.engine import open_engine
 from procedures.store import DuplicateStep, RunStore
 from tests.fakes import FakeCell, FakeScience, write_station
 

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import pytest
 
-from procedures._api import open_engine
 from procedures.cli import main
+from procedures.engine import open_engine
 from procedures.station import RunLocked, StateConflict
 from procedures.store import LATEST, DuplicateStep, RunState, RunStore, StoreError
 from tests._postgres import postgres_server

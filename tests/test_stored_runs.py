@@ -24,8 +24,8 @@ from pathlib import Path
 
 import pytest
 
-from procedures._api import open_engine
 from procedures.cli import main
+from procedures.engine import open_engine
 from procedures.store import RunState, RunStore
 from tests.fakes import FakeCell, FakeScience
 from tests.stored_outputs import digest, outputs

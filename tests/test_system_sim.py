@@ -18,8 +18,7 @@ import yaml
 
 from instrument.compensation import CalibrationRecord
 from instrument.uncertainty import coverage_study
-from procedures._api import open_engine
-from procedures._loading import resolve_procedure_path
+from procedures.engine import open_engine, resolve_procedure_path
 from procedures.kinds.iso import coverage_case
 from sim_devices.cell import SimCell
 

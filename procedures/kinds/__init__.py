@@ -12,7 +12,7 @@ motion). A kind never imports the engine, the report or the faces (the import co
 
 Adding a kind: a module in a family (or a new family) with its parameter model, its procedure-file
 model with ``procedure: Literal["<name>"]`` and a class implementing ``ProcedureKind``; add it to
-``_REGISTERED`` below and regenerate the schemas (``python -m procedures.engine._loading``). The engine,
+``_REGISTERED`` below and regenerate the schemas (``python -m procedures.engine.write_schemas``). The engine,
 the loader, the report and the faces find it here and nowhere else.
 """
 
@@ -46,15 +46,7 @@ from procedures.kinds._setups import (
     Setup,
     SetupCell,
 )
-from procedures.kinds._stream import (
-    COLUMNS,
-    StreamRecord,
-    Tracker,
-    acquire_stream,
-    compensate_with,
-    distance_to,
-    seconds_of,
-)
+from procedures.kinds._stream import COLUMNS, StreamRecord
 
 _REGISTERED: tuple[ProcedureKind[Any], ...] = (
     calibration.DISPLACEMENT,
@@ -94,15 +86,10 @@ __all__ = [
     "Step",
     "StepContext",
     "StreamRecord",
-    "Tracker",
-    "acquire_stream",
-    "compensate_with",
-    "distance_to",
     "environment_summary",
     "kind_of",
     "normalised_results",
     "pose_directions",
     "retry_wait",
     "scale_uncertainty",
-    "seconds_of",
 ]

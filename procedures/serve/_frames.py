@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from procedures._live_frames import DEFAULT_SCALE, LIVE_DIR, LIVE_INDEX, SCREENS, png_of
+from procedures.engine import DEFAULT_SCALE, LIVE_DIR, LIVE_INDEX, SCREENS, png_of
 from procedures.store import Sample
 
 

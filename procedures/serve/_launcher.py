@@ -24,7 +24,7 @@ from typing import Any
 
 import yaml
 
-from procedures._loading import load_procedure, resolve_procedure_path
+from procedures.engine import load_procedure, resolve_procedure_path
 from procedures.station import ConfigError, RunLocked, StateConflict
 from procedures.store import RunState, RunStore
 

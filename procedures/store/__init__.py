@@ -15,11 +15,11 @@ runs through it.
 """
 
 from procedures.store._db import SQLITE_FILE, STORE_ENV, DuplicateStep, StoreError, store_location
-from procedures.store._run_state import RESUMABLE_STATES, PauseDecision, RunState
+from procedures.store._run_state import RESUMABLE_STATES, RunState
 from procedures.store._schema import LATEST, MIGRATIONS, Migration
 from procedures.store._store import Lease, RunStore, Sample, StoredStream
 
 __all__ = [
     "LATEST", "MIGRATIONS", "RESUMABLE_STATES", "SQLITE_FILE", "STORE_ENV", "DuplicateStep", "Lease", "Migration",
-    "PauseDecision", "RunState", "RunStore", "Sample", "StoreError", "StoredStream", "store_location",
+    "RunState", "RunStore", "Sample", "StoreError", "StoredStream", "store_location",
 ]

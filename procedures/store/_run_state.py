@@ -7,7 +7,6 @@ the run store and every JSON event have always used, so stored runs read back un
 from __future__ import annotations
 
 from enum import StrEnum
-from typing import Literal
 
 
 class RunState(StrEnum):
@@ -39,6 +38,3 @@ class RunState(StrEnum):
 _RESUMABLE = frozenset({RunState.QUEUED, RunState.RUNNING, RunState.PAUSED, RunState.FAILED})
 _EXIT_STATUS = {RunState.FINISHED: "success", RunState.FAILED: "fail", RunState.ABORTED: "abort"}
 RESUMABLE_STATES = tuple(state for state in RunState if state.resumable)
-
-PauseDecision = Literal["resume", "abort", "detach"]
-"""What a paused run does next: continue, abort (devices stopped), or stay PAUSED for ``instrument resume``."""

@@ -15,7 +15,7 @@ from typing import Any
 
 import yaml
 
-from procedures._loading import load_procedure
+from procedures.engine._loading import load_procedure
 from procedures.kinds import ProcedureBase
 from procedures.station import ConfigError, load_marked
 

@@ -18,7 +18,7 @@ import numpy as np
 
 from drivers import MotionRefused
 from drivers.robot import MotionEnvelope
-from procedures._step_context import SCREENS, robot_speed
+from procedures.engine._step_context import SCREENS, robot_speed
 from procedures.kinds import DeviceRole, MotionParameters, Step
 from procedures.station import InputRefused, Science, StationRuntime, matrix_to_euler, tcp_in_m
 

@@ -19,19 +19,9 @@ from drivers.camera import Frame, GrabFailed
 from drivers.interferometer import Interferometer
 from drivers.robot import MotionEnvelope, Robot
 from drivers.rotary_table import RotaryTable
-from procedures._live_frames import write_live_frames
-from procedures.kinds import (
-    MotionParameters,
-    PoseReading,
-    Step,
-    StreamRecord,
-    Tracker,
-    acquire_stream,
-    compensate_with,
-    distance_to,
-    retry_wait,
-    seconds_of,
-)
+from procedures.engine._live_frames import write_live_frames
+from procedures.engine._streaming import Tracker, acquire_stream, compensate_with, distance_to, seconds_of
+from procedures.kinds import MotionParameters, PoseReading, Step, StreamRecord, retry_wait
 from procedures.station import (
     COMPONENTS,
     Compensator,

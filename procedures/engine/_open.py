@@ -11,10 +11,10 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from procedures._engine import RunEngine, create_run
-from procedures._hooks import HookRunner
-from procedures._loading import load_procedure, load_station, resolve_procedure_path
-from procedures._overrides import apply_overrides
+from procedures.engine._engine import PauseDecision, RunEngine, create_run
+from procedures.engine._hooks import HookRunner
+from procedures.engine._loading import load_procedure, load_station, resolve_procedure_path
+from procedures.engine._overrides import apply_overrides
 from procedures.station import (
     ConfigError,
     HookSpec,
@@ -27,7 +27,7 @@ from procedures.station import (
     StationRuntime,
     read_text_file,
 )
-from procedures.store import Lease, PauseDecision, RunStore
+from procedures.store import Lease, RunStore
 
 
 def with_earlier_truth(station: StationFile, before: StationFile) -> StationFile:
@@ -70,7 +70,7 @@ def open_engine(
     ``store`` is a ``postgresql://`` URL of a shared run store (default ``$INSTRUMENT_STORE``, else the
     runs folder's SQLite file; per-run files stay in ``runs_dir`` either way). ``overrides``
     (``"key=value"``, a new run only) change the procedure's parameters; the stored procedure text
-    holds them (``procedures._overrides``).
+    holds them (``procedures.engine._overrides``).
     """
     if overrides and run_id is not None:
         raise RunError("parameter overrides (--set) apply to a new run only; a resumed run keeps its own")

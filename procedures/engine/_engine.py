@@ -23,16 +23,16 @@ import time
 import traceback
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
 from drivers import DeviceError
 from drivers.robot import EmergencyStop, ProtectiveStop
 from instrument import __version__
-from procedures._dry_run import collapse, plan_problems
-from procedures._hooks import HookRunner
-from procedures._step_context import StationStepContext
+from procedures.engine._dry_run import collapse, plan_problems
+from procedures.engine._hooks import HookRunner
+from procedures.engine._step_context import StationStepContext
 from procedures.kinds import RESTING_SETUP, AnalysisContext, PoseReading, ProcedureBase, Setup, Step, kind_of
 from procedures.station import (
     Compensator,
@@ -46,7 +46,10 @@ from procedures.station import (
     StationRuntime,
     TruthLog,
 )
-from procedures.store import RESUMABLE_STATES, Lease, PauseDecision, RunState, RunStore
+from procedures.store import RESUMABLE_STATES, Lease, RunState, RunStore
+
+PauseDecision = Literal["resume", "abort", "detach"]
+"""What a paused run does next: continue, abort (devices stopped), or stay PAUSED for ``instrument resume``."""
 
 _MAX_PROBLEMS_SHOWN = 50
 _PLURAL = {"cycle": "cycles", "axis": "axes", "group": "groups", "repeat": "repeats"}
@@ -293,7 +296,7 @@ class RunEngine:
 
     # -------------------------------------------------------------------------------- dry run
     def dry_run(self, committed: set[int] | frozenset[int] = frozenset()) -> None:
-        """Check the whole remaining plan before any motion (see ``procedures._dry_run``);
+        """Check the whole remaining plan before any motion (see ``procedures.engine._dry_run``);
         raises ``DryRunFailed`` listing the problems."""
         todo = [s for s in self.plan if s.index not in committed]
         found = plan_problems(todo, self.kind.devices(self.params), self.station, self.science, self.params)

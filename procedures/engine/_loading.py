@@ -15,7 +15,7 @@ from instrument.pose import Geometry
 from procedures.kinds import KINDS, ProcedureBase
 from procedures.station import ConfigError, MarkedYaml, StationFile, load_marked
 
-PACKAGE_DIR = Path(__file__).resolve().parent
+PACKAGE_DIR = Path(__file__).resolve().parents[1]  # procedures/: the built-in procedures and their schemas
 SCHEMA_DIR = PACKAGE_DIR / "schemas"
 
 
@@ -243,8 +243,3 @@ def write_schemas(directory: Path = SCHEMA_DIR) -> list[Path]:
         path.write_text(json.dumps(schema, indent=2, sort_keys=True) + "\n", encoding="utf-8")
         written.append(path)
     return written
-
-
-if __name__ == "__main__":  # python -m procedures._loading  → regenerate the committed schemas
-    for written_path in write_schemas():
-        print(written_path)

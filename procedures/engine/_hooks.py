@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import http.client
 import importlib
+import importlib.metadata
 import json
 import os
 import queue
@@ -33,7 +34,6 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterable
-from importlib.metadata import entry_points
 from typing import Any
 from urllib.parse import urlparse
 
@@ -63,7 +63,7 @@ def _resolve_callable(spec: HookSpec) -> Callable[[dict], Any]:
         for part in attr.split("."):
             target = getattr(target, part)
         return target
-    found = entry_points(group=ENTRY_POINT_GROUP, name=spec.entry_point or "")
+    found = importlib.metadata.entry_points(group=ENTRY_POINT_GROUP, name=spec.entry_point or "")
     if not found:
         raise HookFailed(f"no entry point {spec.entry_point!r} in group {ENTRY_POINT_GROUP!r}")
     return next(iter(found)).load()
