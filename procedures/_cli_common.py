@@ -1,6 +1,6 @@
 """Shared pieces of the run-related subcommands: the runs folder and store, the pause prompt, signals,
 and the end of a run (its key results, its report, the one line of ``--quiet``, the ``done`` event).
-The progress display is ``procedures._cli_display``; the results' lines ``procedures._cli_results``.
+The progress display is ``procedures._cli_display``; the results' lines ``procedures.report._summaries``.
 
 Signals while a run runs (``signals_control``): the first Ctrl-C pauses at the next safe point, a
 second one (before the run has resumed from that pause) aborts at once; the count starts again at
@@ -25,8 +25,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
 from procedures._cli_display import Display
-from procedures._cli_results import result_lines, result_summary
 from procedures.engine import PauseDecision
+from procedures.report import result_lines, result_summary
 from procedures.station import RunError
 from procedures.store import SQLITE_FILE, STORE_ENV, RunState, RunStore, store_location
 
@@ -272,7 +272,7 @@ def _with_records(station_path: Path, records: list[str]) -> Path:
 def drive(engine: RunEngine, args: argparse.Namespace, display: Display | None = None) -> int:
     """Execute with the display and the signal handling; print the outcome; return the exit code.
 
-    At the end: the run's key results (``procedures._cli_results``) and its report (written to
+    At the end: the run's key results (``procedures.report._summaries``) and its report (written to
     ``<runs>/<run>/report.html``) on stdout, or ``--quiet``'s one line, or ``--jsonl``'s ``done`` event.
     """
     started = time.monotonic()
@@ -309,7 +309,7 @@ def _elapsed(seconds: float) -> str:
 
 def write_report(store: RunStore, run: dict[str, Any]) -> tuple[str | None, str | None]:
     """Write the run's HTML report to ``<runs>/<run>/report.html``; (its path, None) or (None, why not)."""
-    from procedures._report import render_report  # the report stack loads only here
+    from procedures.report import render_report  # the report stack loads only here
 
     try:
         html = render_report(run, store.samples(run["id"]), store.events(run["id"]),

@@ -28,8 +28,8 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from procedures._report import export_csv, export_json  # the measurement stack loads only when needed
     from procedures.kinds import normalised_results
+    from procedures.report import export_csv, export_json  # the measurement stack loads only when needed
 
     with open_store(args) as store:
         r = find_run(store, args.run_id)

@@ -2,7 +2,8 @@
 
 Every finished ISO 9283 run of the robot (the serial its controller reported at run start) in time
 order, per point: RP_l, RP_a/b/c and AP_P with their uncertainty (the expanded uncertainty U when the
-results carry it, else the half-width of the sampling interval; see ``procedures._cli_results``).
+results carry it, else the half-width of the sampling interval; see ``procedures.report``). The runs
+and figures are those of the kinds that declare ``history_figures``.
 A figure is flagged when it moved from the robot's previous run by more than the two runs'
 uncertainties combined, ``|Δ| > √(u₁² + u₂²)``: a change the measurement itself cannot explain.
 """
@@ -15,9 +16,7 @@ import time
 from typing import Any
 
 from procedures._cli_common import READ_EXIT_CODES, add_runs_dir, open_store
-from procedures._cli_results import ISO_FIGURES, changes, iso_rows, shown
-
-ISO_PROCEDURE = "iso9283_repeatability"
+from procedures.report import changes, figure_columns, history_figures, history_procedures, iso_rows, shown
 
 
 def register(subparsers) -> None:
@@ -36,11 +35,12 @@ def register(subparsers) -> None:
 def robot_history(runs: list[dict[str, Any]]) -> dict[str, Any]:
     """The history of one robot's runs (whole rows, oldest first): per point, one entry per run."""
     points: dict[str, list[dict[str, Any]]] = {}
+    keys = history_figures()
     for run in runs:
-        for row in iso_rows(run.get("results") or {}):
+        for row in iso_rows(run.get("results") or {}, keys):
             entries = points.setdefault(row["point"], [])
             previous = entries[-1]["figures"] if entries else None
-            figures = {key: row[key] for key, *_ in ISO_FIGURES}
+            figures = {key: row[key] for key in keys}
             entries.append({"run_id": run["id"], "created": run["created"], "n": row["n"], "figures": figures,
                             "changed": changes(previous, figures)})
     identity = runs[-1] if runs else {}
@@ -50,7 +50,7 @@ def robot_history(runs: list[dict[str, Any]]) -> dict[str, Any]:
 
 def run(args: argparse.Namespace) -> int:
     with open_store(args) as store:
-        runs = store.robot_runs(args.robot, procedure=ISO_PROCEDURE)
+        runs = store.robot_runs(args.robot, procedures=history_procedures())
         known = [r["serial"] for r in store.robots()] if not runs else []
     history = robot_history(runs)
     if args.json:
@@ -63,15 +63,16 @@ def run(args: argparse.Namespace) -> int:
     print(f"{history['manufacturer'] or ''} {history['model'] or ''} serial {history['serial']}: "
           f"{len(runs)} finished ISO 9283 runs".strip())
     flagged = 0
+    columns = figure_columns(history_figures())
     for point, entries in history["points"].items():
         print(f"\n{point}")
-        table = [["date", "run", "n", *[f"{name} ({unit})" for _, name, unit, _ in ISO_FIGURES], ""]]
+        table = [["date", "run", "n", *[f"{name} ({unit})" for _, name, unit, _ in columns], ""]]
         for entry in entries:
             changed = entry["changed"]
             flagged += bool(changed)
             table.append([time.strftime("%Y-%m-%d %H:%M", time.localtime(entry["created"])), entry["run_id"][:8],
                           str(entry["n"]), *[shown(entry["figures"][key], scale) + (" !" if key in changed else "")
-                                             for key, _, _, scale in ISO_FIGURES],
+                                             for key, _, _, scale in columns],
                           _changed_text(changed)])
         widths = [max(len(row[i]) for row in table) for i in range(len(table[0]))]
         for row in table:
@@ -86,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _changed_text(changed: dict[str, float]) -> str:
     parts = []
-    for key, name, unit, scale in ISO_FIGURES:
+    for key, name, unit, scale in figure_columns(history_figures()):
         if key in changed:
             parts.append(f"{name} {changed[key] * scale:+.2f} {unit}")
     return ("changed: " + ", ".join(parts)) if parts else ""

@@ -21,7 +21,7 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from procedures._report import render_report  # the measurement stack loads only when needed
+    from procedures.report import render_report  # the measurement stack loads only when needed
 
     with open_store(args) as store:
         r = find_run(store, args.run_id)
@@ -31,7 +31,7 @@ def run(args) -> int:
         default = store.run_dir(r["id"]) / ("report.pdf" if args.pdf else "report.html")
         path = Path(args.output) if args.output else default
     if args.pdf:
-        from procedures._report_pdf import render_pdf  # WeasyPrint and Pango load only for a PDF
+        from procedures.report import render_pdf  # WeasyPrint and Pango load only for a PDF
 
         pdf = render_pdf(html)
         try:

@@ -37,12 +37,10 @@ def run(args) -> int:
     if r.get("robot_serial"):
         print(f"robot      {r.get('robot_manufacturer') or ''} {r.get('robot_model') or ''} serial {r['robot_serial']}"
               f" (controller {r.get('robot_controller_version') or '?'})")
-    from procedures.kinds import KINDS  # the measurement stack loads only for a run's results
+    from procedures.report import show_lines  # the measurement stack loads only for a run's results
 
-    results, kind = r.get("results"), KINDS.get(r["procedure"])
-    if results and kind is not None:
-        for line in kind.summary_lines(results):
-            print(line)
+    for line in show_lines(r):
+        print(line)
     print("recent events:")
     for e in events[-8:]:
         print(f"  {e['kind']}: {e['message']}")

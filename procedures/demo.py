@@ -20,8 +20,8 @@ import numpy as np
 import yaml
 
 from procedures._cli_display import Display
-from procedures._report import render_report
 from procedures.engine import open_engine, resolve_procedure_path
+from procedures.report import render_report
 from procedures.store import RunState, RunStore
 
 ARCSEC = np.pi / (180 * 3600)

@@ -73,7 +73,7 @@ def test_held_out_residuals_of_a_real_calibration_fit_are_shown():
     held-out RMS of the method the record kept (the lowest), in µm, beside its noise floor."""
     import numpy as np
 
-    from procedures._cli_results import calibration_lines, held_out_rows
+    from procedures.report import calibration_lines, held_out_rows
     from procedures.station import InstrumentScience
 
     rng = np.random.default_rng(3)

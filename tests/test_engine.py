@@ -7,8 +7,8 @@ import time
 import numpy as np
 import pytest
 
-from procedures._report import export_json, render_report
 from procedures.engine import open_engine
+from procedures.report import export_json, render_report
 from procedures.station import RunError, tcp_in_m
 from tests.fakes import REFERENCE_TCP, FakeCell, FakeScience, write_station
 

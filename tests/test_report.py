@@ -18,9 +18,8 @@ from pathlib import Path
 
 import pytest
 
-from procedures._report import export_csv, export_json, render_report
-from procedures._report_conditions import quantity
 from procedures.engine import open_engine
+from procedures.report import export_csv, export_json, quantity, render_report
 from tests.fakes import FakeCell, FakeScience, write_station
 
 ARCSEC = math.pi / (180 * 3600)
@@ -401,7 +400,7 @@ def test_exports(tmp_path):
 
 
 def test_u_has_two_significant_digits_and_the_value_the_same_decimal_place():
-    from procedures._report_format import MICROMETRES, Figure, figure_cell
+    from procedures.report import MICROMETRES, Figure, figure_cell
 
     assert figure_cell(Figure(1.36123e-6, 0.0043e-6), MICROMETRES) == (
         "<td><span class=v>1.3612</span> <span class=u>± 0.0043</span></td>")

@@ -9,9 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from procedures._report import render_report, robot_label
-from procedures._report_pdf import PdfUnavailable, render_pdf
 from procedures.cli import main
+from procedures.report import PdfUnavailable, render_pdf, render_report, robot_label
 from tests.test_report import as_stored_by_older_code, fake_run, with_stored_figures
 
 pdfminer = pytest.importorskip("pdfminer.high_level", reason="pdfminer.six (a test dependency) reads the PDF back")

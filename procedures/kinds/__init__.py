@@ -28,12 +28,14 @@ from procedures.kinds._environment import environment_summary
 from procedures.kinds._export import normalised_results
 from procedures.kinds._parameters import AxisName, MotionParameters, ProcedureBase, retry_wait
 from procedures.kinds._protocol import (
+    RESULTS_VERSION,
     Analysis,
     AnalysisContext,
     DeviceRole,
     PoseReading,
     ProcedureKind,
     Reading,
+    ResultShape,
     Step,
     StepContext,
 )
@@ -60,6 +62,20 @@ KINDS: Mapping[str, ProcedureKind[Any]] = MappingProxyType(_KINDS)
 """Every kind by its ``procedure:`` name, in registration order (read-only)."""
 
 
+def register(kind: ProcedureKind[Any]) -> None:
+    """Add a kind defined elsewhere (a plug-in, a test) to ``KINDS``; its name must be new."""
+    if kind.name in _KINDS:
+        raise ValueError(f"a procedure kind named {kind.name!r} is already registered")
+    _KINDS[kind.name] = kind
+
+
+def unregister(name: str) -> None:
+    """Remove a kind ``register`` added (the built-in kinds stay)."""
+    if any(kind.name == name for kind in _REGISTERED):
+        raise ValueError(f"{name!r} is a built-in procedure kind")
+    _KINDS.pop(name, None)
+
+
 def kind_of(procedure: ProcedureBase) -> ProcedureKind[Any]:
     """The kind that runs a validated procedure file."""
     return KINDS[procedure.procedure]
@@ -68,6 +84,7 @@ def kind_of(procedure: ProcedureBase) -> ProcedureKind[Any]:
 __all__ = [
     "COLUMNS",
     "KINDS",
+    "RESULTS_VERSION",
     "RESTING_SETUP",
     "Analysis",
     "AnalysisContext",
@@ -81,6 +98,7 @@ __all__ = [
     "ProcedureBase",
     "ProcedureKind",
     "Reading",
+    "ResultShape",
     "Setup",
     "SetupCell",
     "Step",
@@ -90,6 +108,8 @@ __all__ = [
     "kind_of",
     "normalised_results",
     "pose_directions",
+    "register",
     "retry_wait",
     "scale_uncertainty",
+    "unregister",
 ]

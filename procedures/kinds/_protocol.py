@@ -4,12 +4,19 @@ A kind plans a run as a fixed list of ``Step``s, brings the OPR to each step's p
 reads what the step measures (``measure``: its references and the pose from the frames, through
 a ``StepContext``), and turns the committed samples into results (``analyse``, through a narrow
 ``AnalysisContext``). The engine knows no kind by name; ``procedures.kinds`` registers them.
+
+A kind shows nothing itself: it declares what the report and the faces need to show its runs — a
+title from the parameters in force (``title``), the shape of its results (``result_shape``, by which
+``procedures.report`` finds the sections that show them), whether its runs are judged against ISO
+9283's test conditions (``iso_test_conditions``) and which figures a robot's history follows
+(``history_figures``).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from enum import StrEnum
 from pathlib import Path
 from typing import Any, Literal, Protocol, TypeVar
 
@@ -23,6 +30,19 @@ from procedures.store import Sample
 
 DeviceRole = Literal["robot", "rotary_table", "interferometer"]  # the cameras serve every kind
 RESULTS_VERSION = 2  # the layout of the results the kinds write (docs/results.md); results stored before it have none
+
+
+class ResultShape(StrEnum):
+    """The shapes of results the built-in kinds write (docs/results.md); the report keys its sections on them.
+
+    A kind of a new family may declare a shape of its own (any string) and register a section for it
+    (``procedures.report.register_section``).
+    """
+
+    ISO_POSE = "iso_pose"  # figures per point of the ISO cube, test conditions, deviations
+    CALIBRATION = "calibration"  # a calibration record, its held-out evaluation and residuals per component
+    STABILISATION = "stabilisation"  # stabilisation time and overshoot per point and speed
+    PATH = "path"  # path accuracy, repeatability, cornering and velocity per speed
 
 
 @dataclass(frozen=True)
@@ -243,10 +263,25 @@ class ProcedureKind(Protocol[P]):
         """The run's results from its committed samples (failed ones included, ``ok`` False)."""
         ...
 
-    def report_html(self, results: Mapping[str, Any]) -> str:
-        """The results section of the run's HTML report."""
+    @property
+    def result_shape(self) -> str:
+        """The shape of the results ``analyse`` writes (a ``ResultShape`` for the built-in kinds)."""
         ...
 
-    def summary_lines(self, results: Mapping[str, Any]) -> list[str]:
-        """A few lines of results for ``instrument show``."""
+    @property
+    def iso_test_conditions(self) -> bool:
+        """Whether a run is judged against ISO 9283's test conditions: the report heads its banner
+        "Deviations from ISO 9283", and a run stored before its results recorded the conditions and
+        deviations gets those its parameters, station snapshot and results show."""
+        ...
+
+    @property
+    def history_figures(self) -> tuple[str, ...]:
+        """The figures per point ``instrument history`` and the web view's robot history follow (keys of
+        the ISO figures, ``rp_l`` ...); empty: the kind's runs are not in a robot's history."""
+        ...
+
+    def title(self, parameters: Mapping[str, Any], results: Mapping[str, Any] | None) -> str:
+        """What a run measured, for the report's title: from the parameters it ran with (as stored, so
+        ``--set cycles=3`` gives 3 cycles) and, once it has finished, its results."""
         ...

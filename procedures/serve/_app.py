@@ -24,8 +24,9 @@ from fastapi.staticfiles import StaticFiles
 from starlette.concurrency import run_in_threadpool
 
 from instrument import __version__
+from procedures.report import history_procedures, iso_points
 from procedures.serve._frames import SCREENS, frame_png, latest_frames
-from procedures.serve._reader import StoreReader, iso_points
+from procedures.serve._reader import StoreReader
 from procedures.serve._security import AccessGuard
 
 STATIC = Path(__file__).parent / "static"
@@ -135,7 +136,7 @@ def create_app(settings: WebSettings, *, reader: StoreReader | None = None) -> F
 
     @app.get("/runs/{run_id}/report", response_class=HTMLResponse, include_in_schema=False)
     def report(run_id: str) -> HTMLResponse:
-        from procedures._report import render_report  # the measurement stack loads only when a report is asked
+        from procedures.report import render_report  # the measurement stack loads only when a report is asked
 
         try:
             run = reader.run(run_id)
@@ -213,12 +214,14 @@ def create_app(settings: WebSettings, *, reader: StoreReader | None = None) -> F
 
     @app.get("/api/robots")
     def robots() -> dict[str, Any]:
-        """Robots seen in the store: by identity (serial) when a run records it, else by station name."""
+        """Robots seen in the store: by identity (serial) when a run records it, else by station name;
+        ``iso_runs`` counts the finished runs of the kinds a robot's history follows."""
         groups: dict[str, dict[str, Any]] = {}
+        followed = history_procedures()
         for r in reader.runs():
             group = groups.setdefault(r["robot"]["key"], {**r["robot"], "runs": 0, "iso_runs": 0, "last": None})
             group["runs"] += 1
-            group["iso_runs"] += int(r["procedure"] == "iso9283_repeatability" and r["state"] == "FINISHED")
+            group["iso_runs"] += int(r["procedure"] in followed and r["state"] == "FINISHED")
             group["last"] = max(group["last"] or 0, r["created"] or 0)
         return {"robots": sorted(groups.values(), key=lambda g: -(g["last"] or 0))}
 

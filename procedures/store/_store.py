@@ -344,13 +344,15 @@ class RunStore:
         return run
 
     def list_runs(self, *, states: Iterable[RunState] = (), procedure: str | None = None,
-                  robot: str | None = None, last: int | None = None) -> list[dict[str, Any]]:
+                  procedures: Iterable[str] | None = None, robot: str | None = None,
+                  last: int | None = None) -> list[dict[str, Any]]:
         """Runs, oldest first: the run row's summary columns plus its number of samples.
 
         Parameters
         ----------
         states : only runs in one of these states (all when empty)
         procedure : only runs of this procedure kind (e.g. ``iso9283_repeatability``)
+        procedures : only runs of one of these kinds (none when empty)
         robot : only runs on the robot with this serial number
         last : only the newest ``last`` of those
         """
@@ -363,6 +365,10 @@ class RunStore:
         if procedure is not None:
             where.append("r.procedure = ?")
             args.append(procedure)
+        if procedures is not None:
+            kinds = list(procedures)
+            where.append(f"r.procedure IN ({', '.join('?' * len(kinds))})" if kinds else "1 = 0")
+            args += kinds
         if robot is not None:
             where.append("r.robot_serial = ?")
             args.append(robot)
@@ -377,10 +383,11 @@ class RunStore:
         rows = self._db.rows(query, args)
         return [{**row, "samples": int(row["samples"]), "state": RunState(row["state"])} for row in reversed(rows)]
 
-    def robot_runs(self, serial: str, *, procedure: str | None = None,
+    def robot_runs(self, serial: str, *, procedure: str | None = None, procedures: Iterable[str] | None = None,
                    states: Iterable[RunState] = (RunState.FINISHED,)) -> list[dict[str, Any]]:
         """Every run on the robot with serial number ``serial`` (whole rows, results decoded), oldest first."""
-        return [self.get_run(row["id"]) for row in self.list_runs(states=states, procedure=procedure, robot=serial)]
+        return [self.get_run(row["id"]) for row in self.list_runs(states=states, procedure=procedure,
+                                                                  procedures=procedures, robot=serial)]
 
     def robots(self) -> list[dict[str, Any]]:
         """The robots the store has runs of: serial, manufacturer, model, number of runs, first and last run time."""

@@ -16,10 +16,17 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import Field, ValidationInfo, field_validator, model_validator
 
-from procedures._report_sections import calibration_results_html, calibration_summary_lines
 from procedures.kinds._approach import Approach, approach_table, directions_of
 from procedures.kinds._parameters import AxisName, MotionParameters, ProcedureBase, all_axes
-from procedures.kinds._protocol import Analysis, AnalysisContext, DeviceRole, Reading, Step, StepContext
+from procedures.kinds._protocol import (
+    Analysis,
+    AnalysisContext,
+    DeviceRole,
+    Reading,
+    ResultShape,
+    Step,
+    StepContext,
+)
 from procedures.kinds._setups import OprOnTable
 from procedures.kinds.calibration._common import (
     analyse_calibration,
@@ -129,11 +136,12 @@ class AngleCalibrationKind:
                                    reference_instrument="rotary table encoder", record_path=params.record_path,
                                    params=params, approach=params.approach)
 
-    def report_html(self, results: Mapping[str, Any]) -> str:
-        return calibration_results_html(results)
+    result_shape = ResultShape.CALIBRATION
+    iso_test_conditions = False
+    history_figures = ()
 
-    def summary_lines(self, results: Mapping[str, Any]) -> list[str]:
-        return calibration_summary_lines(results)
+    def title(self, parameters: Mapping[str, Any], results: Mapping[str, Any] | None) -> str:
+        return "Angle calibration of the optical pose reference"
 
 
 KIND = AngleCalibrationKind()

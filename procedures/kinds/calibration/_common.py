@@ -272,8 +272,3 @@ def _datum_offset(earlier: list[dict[str, Any]], later: list[dict[str, Any]]) ->
     if not common:
         return None
     return float(np.mean([after[p] - before[p] for p in common]))
-
-
-def calibration_summary_lines(results: Mapping[str, Any]) -> list[str]:
-    """``instrument show``: where the record went."""
-    return [f"record     {results['record_path']} ({results['record_id']})"]

@@ -30,11 +30,18 @@ from pydantic import Field, ValidationInfo, field_validator, model_validator
 from drivers import DeviceConnectionError, DeviceFault
 from drivers.interferometer import BeamInterrupted, FeedGap
 from instrument.environment import AirConditions, AirConditionsError
-from procedures._report_sections import calibration_results_html, calibration_summary_lines
 from procedures.kinds._approach import Approach, approach_on_line, directions_of, note_line_position, robot_pose_in_m
 from procedures.kinds._environment import environment_record
 from procedures.kinds._parameters import AxisName, MotionParameters, ProcedureBase, all_axes, retry_wait
-from procedures.kinds._protocol import Analysis, AnalysisContext, DeviceRole, Reading, Step, StepContext
+from procedures.kinds._protocol import (
+    Analysis,
+    AnalysisContext,
+    DeviceRole,
+    Reading,
+    ResultShape,
+    Step,
+    StepContext,
+)
 from procedures.kinds._references import compensate
 from procedures.kinds._setups import InterferometerAligned
 from procedures.kinds.calibration._common import (
@@ -248,11 +255,12 @@ class DisplacementCalibrationKind:
                                    params=params, approach=params.approach,
                                    wavelength_compensation=params.wavelength_compensation)
 
-    def report_html(self, results: Mapping[str, Any]) -> str:
-        return calibration_results_html(results)
+    result_shape = ResultShape.CALIBRATION
+    iso_test_conditions = False
+    history_figures = ()
 
-    def summary_lines(self, results: Mapping[str, Any]) -> list[str]:
-        return calibration_summary_lines(results)
+    def title(self, parameters: Mapping[str, Any], results: Mapping[str, Any] | None) -> str:
+        return "Displacement calibration of the optical pose reference"
 
 
 KIND = DisplacementCalibrationKind()

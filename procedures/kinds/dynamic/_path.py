@@ -17,7 +17,15 @@ import numpy as np
 from pydantic import Field
 
 from procedures.kinds._parameters import ProcedureBase
-from procedures.kinds._protocol import Analysis, AnalysisContext, DeviceRole, Reading, Step, StepContext
+from procedures.kinds._protocol import (
+    Analysis,
+    AnalysisContext,
+    DeviceRole,
+    Reading,
+    ResultShape,
+    Step,
+    StepContext,
+)
 from procedures.kinds.dynamic._analysis import (
     circle_command,
     commanded_tool,
@@ -42,6 +50,7 @@ from procedures.kinds.dynamic._plan import (
     go_to,
     motion_of,
     robot_step,
+    settings_title,
     start_session,
     stream_problem,
     stream_reading,
@@ -151,15 +160,12 @@ class Iso9283PathKind:
     def analyse(self, samples: Sequence[Sample], params: PathParameters, ctx: AnalysisContext) -> Analysis:
         return Analysis(results=analyse_path(samples, params, ctx))
 
-    def report_html(self, results: Mapping[str, Any]) -> str:
-        from procedures._report_dynamic import path_html
+    result_shape = ResultShape.PATH
+    iso_test_conditions = False
+    history_figures = ()
 
-        return path_html(results)
-
-    def summary_lines(self, results: Mapping[str, Any]) -> list[str]:
-        from procedures._report_dynamic import path_lines
-
-        return path_lines(results)
+    def title(self, parameters: Mapping[str, Any], results: Mapping[str, Any] | None) -> str:
+        return settings_title("ISO 9283 path characteristics", parameters)
 
 
 def analyse_path(samples: Sequence[Sample], params: PathParameters, ctx: AnalysisContext) -> dict[str, Any]:

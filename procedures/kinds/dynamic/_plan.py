@@ -9,7 +9,7 @@ OPR's in nominal M (metres), turned into TCP poses at the reference orientation.
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any, Literal
 
 import numpy as np
@@ -61,6 +61,16 @@ class DynamicParameters(MotionParameters):
                           "move to its start dies out)")
     min_poses: int = Field(MIN_SAMPLES, ge=3, le=100000, description="fewest streamed poses of a move; fewer: the "
                            "move's sample failed (measured again on resume)")
+
+
+def settings_title(what: str, parameters: Mapping[str, Any]) -> str:
+    """The report's title of a run measured in motion: what it measured, its cycles and speeds as run
+    (e.g. "ISO 9283 pose stabilisation — 2 cycles at 100, 20 % of rated speed")."""
+    cycles, speeds = parameters.get("cycles"), parameters.get("speeds_percent")
+    if not isinstance(cycles, int) or not isinstance(speeds, list):
+        return what
+    return (f"{what} — {cycles} cycle{'s' if cycles != 1 else ''} at "
+            f"{', '.join(f'{s:g}' for s in speeds)} % of rated speed")
 
 
 def cube_point(params: DynamicParameters, label: str) -> np.ndarray:

@@ -18,7 +18,15 @@ import numpy as np
 from pydantic import Field
 
 from procedures.kinds._parameters import ProcedureBase
-from procedures.kinds._protocol import Analysis, AnalysisContext, DeviceRole, Reading, Step, StepContext
+from procedures.kinds._protocol import (
+    Analysis,
+    AnalysisContext,
+    DeviceRole,
+    Reading,
+    ResultShape,
+    Step,
+    StepContext,
+)
 from procedures.kinds.dynamic._analysis import (
     band_of,
     positioning_times,
@@ -35,6 +43,7 @@ from procedures.kinds.dynamic._plan import (
     go_to,
     motion_of,
     robot_step,
+    settings_title,
     start_session,
     stream_problem,
     stream_reading,
@@ -128,15 +137,12 @@ class Iso9283StabilisationKind:
     def analyse(self, samples: Sequence[Sample], params: StabilisationParameters, ctx: AnalysisContext) -> Analysis:
         return Analysis(results=analyse_stabilisation(samples, params, ctx))
 
-    def report_html(self, results: Mapping[str, Any]) -> str:
-        from procedures._report_dynamic import stabilisation_html
+    result_shape = ResultShape.STABILISATION
+    iso_test_conditions = False
+    history_figures = ()
 
-        return stabilisation_html(results)
-
-    def summary_lines(self, results: Mapping[str, Any]) -> list[str]:
-        from procedures._report_dynamic import stabilisation_lines
-
-        return stabilisation_lines(results)
+    def title(self, parameters: Mapping[str, Any], results: Mapping[str, Any] | None) -> str:
+        return settings_title("ISO 9283 pose stabilisation", parameters)
 
 
 def analyse_stabilisation(samples: Sequence[Sample], params: StabilisationParameters,

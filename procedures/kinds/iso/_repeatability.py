@@ -12,11 +12,18 @@ import time
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from procedures._report_sections import iso_results_html
 from procedures.kinds._approach import pose_directions, robot_pose_in_m
 from procedures.kinds._conditions import operator_of, robot_identity, set_payload, warm_up
 from procedures.kinds._environment import environment_record, read_environment
-from procedures.kinds._protocol import Analysis, AnalysisContext, DeviceRole, Reading, Step, StepContext
+from procedures.kinds._protocol import (
+    Analysis,
+    AnalysisContext,
+    DeviceRole,
+    Reading,
+    ResultShape,
+    Step,
+    StepContext,
+)
 from procedures.kinds._setups import OprOnRobot
 from procedures.kinds.iso._analysis import analyse_iso
 from procedures.kinds.iso._parameters import Iso9283Repeatability, IsoParameters, cube_path
@@ -96,13 +103,22 @@ class Iso9283RepeatabilityKind:
     def analyse(self, samples: Sequence[Sample], params: IsoParameters, ctx: AnalysisContext) -> Analysis:
         return Analysis(results=analyse_iso(samples, ctx, params))
 
-    def report_html(self, results: Mapping[str, Any]) -> str:
-        return iso_results_html(results)
+    result_shape = ResultShape.ISO_POSE
+    iso_test_conditions = True
+    history_figures = ("rp_l", "rp_a", "rp_b", "rp_c", "ap_p")
 
-    def summary_lines(self, results: Mapping[str, Any]) -> list[str]:
-        from procedures._report_sections import iso_summary_lines  # here, not above: the import block is shared
-
-        return iso_summary_lines(results)
+    def title(self, parameters: Mapping[str, Any], results: Mapping[str, Any] | None) -> str:
+        """"ISO 9283 pose repeatability and accuracy — N cycles": the fewest cycles measured at a point once the
+        run has results, else the cycles it plans ("— N cycles planned"); never the procedure file's name,
+        which may say 30 cycles of a 5-cycle run."""
+        title = "ISO 9283 pose repeatability and accuracy"
+        points = (results or {}).get("points") or {}
+        counts = [int(p.get("n", 0)) for p in points.values() if isinstance(p, Mapping)]
+        cycles = parameters.get("cycles")
+        n = min(counts) if counts else int(cycles) if isinstance(cycles, (int, float)) else None
+        if n is None:
+            return title
+        return title + f" — {n} cycle{'s' if n != 1 else ''}" + ("" if points else " planned")
 
 
 KIND = Iso9283RepeatabilityKind()

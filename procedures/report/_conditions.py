@@ -15,18 +15,22 @@ from collections.abc import Mapping
 from html import escape
 from typing import Any
 
-from procedures._report_format import display_json, fmt, is_number, key_value_table
+from procedures.report._format import display_json, fmt, is_number, key_value_table
+from procedures.report._sections import kind_of_run
 
 ISO_CYCLES = 30
 KELVIN = 273.15
-TITLES = {"iso9283_repeatability": "ISO 9283 pose repeatability and accuracy",
-          "displacement_calibration": "Displacement calibration of the optical pose reference",
-          "angle_calibration": "Angle calibration of the optical pose reference"}
 
 
 def as_mapping(value: Any) -> Mapping[str, Any]:
     """``value`` if it is a mapping, else an empty one (stored JSON may hold anything)."""
     return value if isinstance(value, Mapping) else {}
+
+
+def _judged_against_iso(run: Mapping[str, Any]) -> bool:
+    """Whether the run's kind is judged against ISO 9283's test conditions (``iso_test_conditions``)."""
+    kind = kind_of_run(run)
+    return kind is not None and kind.iso_test_conditions
 
 
 def _conditions(run: Mapping[str, Any]) -> Mapping[str, Any]:
@@ -45,15 +49,13 @@ def cycles_measured(run: Mapping[str, Any]) -> int | None:
 
 
 def report_title(run: Mapping[str, Any]) -> str:
-    """A title that states what was measured (never the procedure file's name, which may say "30 cycles"
-    of a 5-cycle run)."""
-    title = TITLES.get(run["procedure"], str(run.get("procedure_name") or run["procedure"]))
-    if run["procedure"] == "iso9283_repeatability":
-        n = cycles_measured(run)
-        done = bool((run.get("results") or {}).get("points"))
-        if n is not None:
-            title += f" — {n} cycle{'s' if n != 1 else ''}" + ("" if done else " planned")
-    return title
+    """A title that states what was measured, as the run's kind words it from the parameters the run had
+    (never the procedure file's name, which may say "30 cycles" of a 5-cycle run); the file's name, or the
+    procedure's, for a kind no longer known."""
+    kind = kind_of_run(run)
+    if kind is None:
+        return str(run.get("procedure_name") or run["procedure"])
+    return kind.title(run.get("parameters") or {}, run.get("results"))
 
 
 def name_note(run: Mapping[str, Any]) -> str:
@@ -67,8 +69,9 @@ def name_note(run: Mapping[str, Any]) -> str:
 
 
 def derived_deviations(run: Mapping[str, Any]) -> list[str]:
-    """Deviations from ISO 9283 read off an ISO run itself (for runs whose results carry none)."""
-    if run["procedure"] != "iso9283_repeatability":
+    """Deviations from ISO 9283 read off a run of a kind judged against its test conditions (for runs whose
+    results carry none)."""
+    if not _judged_against_iso(run):
         return []
     params, results = run.get("parameters") or {}, run.get("results") or {}
     found = []
@@ -102,7 +105,7 @@ def banner_html(run: Mapping[str, Any]) -> str:
     """The deviations from ISO 9283 (and warnings on the measurement), at the top of the report."""
     results = run.get("results") or {}
     stored = results.get("deviations")
-    is_iso = run["procedure"] == "iso9283_repeatability"
+    is_iso = _judged_against_iso(run)
     if isinstance(stored, list):
         items = [_deviation_item(d) for d in stored]
         source = ""
@@ -391,7 +394,7 @@ def conditions_html(run: Mapping[str, Any]) -> str:
     stored = _conditions(run)
     if stored:
         body, note = stored_conditions_html(stored), ""
-    elif run["procedure"] == "iso9283_repeatability" and run.get("results"):
+    elif _judged_against_iso(run) and run.get("results"):
         body = key_value_table(_from_run(run))
         note = ("<p class=note>This run was stored before the test conditions were recorded; what its parameters "
                 "and station snapshot say is shown.</p>")

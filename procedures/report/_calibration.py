@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from procedures._report_format import Figure, Unit, component_unit, figure_cell, fmt, is_number
-from procedures._svg import scatter
+from procedures.report._format import Figure, Unit, component_unit, figure_cell, fmt, is_number
+from procedures.report._svg import scatter
 
 LOPO, LOGO = "leave-one-point-out", "leave-one-group-out"
 COMPONENTS = ("x", "y", "z", "a", "b", "c")

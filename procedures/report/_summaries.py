@@ -4,19 +4,31 @@ ISO 9283 runs: per point n, RP_l, RP_a/b/c, AP_P, each with its expanded uncerta
 results carry one, else with the half-width of its sampling interval (the 95 % confidence interval
 of RP_l; the other figures then have none). Calibrations: the held-out (leave-one-point-out)
 residual of the method the record kept, per component, beside the noise floor. Everything is read
-from the stored results dict; units convert here, at the edge (µm, arc-seconds).
+from the stored results dict; units convert here, at the edge (µm, arc-seconds). Which of these a
+run gets is the registry's choice (``_sections``), by the shape of its results.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping, Sequence
 from typing import Any
 
-from procedures.kinds.dynamic import DYNAMIC_KINDS, dynamic_figures
+from procedures.kinds.dynamic import dynamic_figures
 
 ARCSEC = math.pi / (180 * 3600)
-ISO_FIGURES = (("rp_l", "RP_l", "µm", 1e6), ("rp_a", "RP_a", "″", 1 / ARCSEC), ("rp_b", "RP_b", "″", 1 / ARCSEC),
-               ("rp_c", "RP_c", "″", 1 / ARCSEC), ("ap_p", "AP_P", "µm", 1e6))
+FIGURE_COLUMNS = {"rp_l": ("RP_l", "µm", 1e6), "rp_a": ("RP_a", "″", 1 / ARCSEC), "rp_b": ("RP_b", "″", 1 / ARCSEC),
+                  "rp_c": ("RP_c", "″", 1 / ARCSEC), "ap_p": ("AP_P", "µm", 1e6)}
+"""Per ISO figure a terminal column shows: its name, unit and scale from SI."""
+
+
+def figure_columns(keys: Sequence[str]) -> tuple[tuple[str, str, str, float], ...]:
+    """``(key, name, unit, scale)`` of each figure in ``keys`` (its key upper-cased and SI where none is known)."""
+    return tuple((key, *FIGURE_COLUMNS.get(key, (key.upper(), "SI", 1.0))) for key in keys)
+
+
+ISO_FIGURES = figure_columns(("rp_l", "rp_a", "rp_b", "rp_c", "ap_p"))
+"""The columns of the RP/AP table ``run`` and ``resume`` print at the end of an ISO run."""
 LINEAR = {"x", "y", "z"}
 LOPO = "leave-one-point-out"  # the held-out scheme a record's evaluation is chosen by
 
@@ -27,7 +39,7 @@ def _number(value: Any) -> float | None:
     return float(value) if math.isfinite(float(value)) else None
 
 
-def figure(entry: dict[str, Any], key: str) -> dict[str, Any] | None:
+def point_figure(entry: Mapping[str, Any], key: str) -> dict[str, Any] | None:
     """One figure of one ISO point: ``{"value", "u", "u_source", "ci"}`` in SI, or None if absent.
 
     Accepted shapes (older results and those with uncertainties alike): ``stats[key]`` a number with
@@ -63,8 +75,8 @@ def figure(entry: dict[str, Any], key: str) -> dict[str, Any] | None:
     return {"value": value, "u": u, "u_source": source, "ci": interval}
 
 
-def iso_rows(results: dict[str, Any]) -> list[dict[str, Any]]:
-    """Per ISO point (in the cycle's order): ``point``, ``n`` and each figure of ``ISO_FIGURES`` (``figure``)."""
+def iso_rows(results: Mapping[str, Any], keys: Sequence[str] = tuple(FIGURE_COLUMNS)) -> list[dict[str, Any]]:
+    """Per ISO point (in the cycle's order): ``point``, ``n`` and each figure of ``keys`` (``point_figure``)."""
     rows = []
     reported = ((results.get("figures") or {}).get("points") or {})  # issue 13's figure objects, per point
     for label in results.get("order") or []:
@@ -72,16 +84,16 @@ def iso_rows(results: dict[str, Any]) -> list[dict[str, Any]]:
         if isinstance(reported.get(label), dict):
             entry = {**entry, "figures": {**(entry.get("figures") or {}), **reported[label]}}
         rows.append({"point": label, "n": entry.get("n"), "error": entry.get("error"),
-                     **{key: figure(entry, key) for key, *_ in ISO_FIGURES}})
+                     **{key: point_figure(entry, key) for key in keys}})
     return rows
 
 
-def changes(previous: dict[str, Any] | None, current: dict[str, Any]) -> dict[str, float]:
+def changes(previous: Mapping[str, Any] | None, current: Mapping[str, Any]) -> dict[str, float]:
     """The figures of one point that moved by more than the combined uncertainty: key → Δ (SI)."""
     moved: dict[str, float] = {}
     if previous is None:
         return moved
-    for key, *_ in ISO_FIGURES:
+    for key in current:
         before, now = previous.get(key), current.get(key)
         if not before or not now or before.get("u") is None or now.get("u") is None:
             continue
@@ -91,7 +103,7 @@ def changes(previous: dict[str, Any] | None, current: dict[str, Any]) -> dict[st
     return moved
 
 
-def shown(fig: dict[str, Any] | None, scale: float, digits: int = 2) -> str:
+def shown(fig: Mapping[str, Any] | None, scale: float, digits: int = 2) -> str:
     """``38.27 ± 1.20`` (U or the interval's half-width), ``38.27`` without one, ``–`` when absent."""
     if fig is None:
         return "–"
@@ -99,9 +111,9 @@ def shown(fig: dict[str, Any] | None, scale: float, digits: int = 2) -> str:
     return text + (f" ± {fig['u'] * scale:.{digits}f}" if fig.get("u") is not None else "")
 
 
-def iso_table_lines(results: dict[str, Any]) -> list[str]:
+def iso_table_lines(results: Mapping[str, Any]) -> list[str]:
     """The RP/AP table of an ISO run as aligned text lines (µm and arc-seconds)."""
-    rows = iso_rows(results)
+    rows = iso_rows(results, [key for key, *_ in ISO_FIGURES])
     header = ["point", "n", *[f"{name} ({unit})" for _, name, unit, _ in ISO_FIGURES]]
     body = [[row["point"], str(row["n"] if row["n"] is not None else "–"),
              *[shown(row[key], scale) for key, _, _, scale in ISO_FIGURES]] for row in rows]
@@ -114,7 +126,7 @@ def iso_table_lines(results: dict[str, Any]) -> list[str]:
     return lines
 
 
-def held_out_rows(results: dict[str, Any]) -> list[dict[str, Any]]:
+def held_out_rows(results: Mapping[str, Any]) -> list[dict[str, Any]]:
     """Per component of a calibration: the held-out (leave-one-point-out) residual of the method the
     record kept (the lowest held-out RMS) and the noise floor, SI."""
     summary = results.get("summary") or {}
@@ -132,12 +144,12 @@ def held_out_rows(results: dict[str, Any]) -> list[dict[str, Any]]:
     return found
 
 
-def _rms_or_inf(row: dict[str, Any]) -> float:
+def _rms_or_inf(row: Mapping[str, Any]) -> float:
     rms = _number(row.get("rms"))
     return math.inf if rms is None else rms
 
 
-def calibration_lines(results: dict[str, Any]) -> list[str]:
+def calibration_lines(results: Mapping[str, Any]) -> list[str]:
     """Where the record went, and the held-out residual per component (µm or arc-seconds)."""
     lines = [f"record {results.get('record_path')} ({results.get('record_id')})"]
     table = [["component", "method", "held-out RMS", "max", "noise floor", "n"]]
@@ -151,37 +163,50 @@ def calibration_lines(results: dict[str, Any]) -> list[str]:
     return lines
 
 
-def result_summary(run: dict[str, Any]) -> dict[str, Any] | None:
-    """The key results as JSON (SI): ISO ``points`` (``iso_rows``) or a calibration's ``held_out`` rows."""
-    results = run.get("results") or {}
-    if _is_iso(results):
-        return {"kind": "iso9283", "points": iso_rows(results)}
-    if "record_path" in results:
-        return {"kind": results.get("kind"), "record_path": results.get("record_path"),
-                "record_id": results.get("record_id"), "held_out": held_out_rows(results)}
-    if results.get("kind") in DYNAMIC_KINDS:
-        return {"kind": results["kind"], "settings": dynamic_figures(results)}
-    return None
+def iso_key_results(results: Mapping[str, Any]) -> dict[str, Any]:
+    """An ISO run's key results as JSON (SI): its ``points`` (``iso_rows``)."""
+    return {"kind": "iso9283", "points": iso_rows(results, [key for key, *_ in ISO_FIGURES])}
 
 
-def _is_iso(results: dict[str, Any]) -> bool:
-    return results.get("kind") == "iso9283" or ("order" in results and "points" in results)
+def calibration_key_results(results: Mapping[str, Any]) -> dict[str, Any]:
+    """A calibration's key results as JSON (SI): the record and its ``held_out`` rows."""
+    return {"kind": results.get("kind"), "record_path": results.get("record_path"),
+            "record_id": results.get("record_id"), "held_out": held_out_rows(results)}
 
 
-def result_lines(run: dict[str, Any]) -> list[str]:
-    """The key results of a stored run (empty when it has none)."""
-    results = run.get("results") or {}
-    if not results:
-        return []
-    if _is_iso(results):
-        return iso_table_lines(results)
-    if "record_path" in results:
-        return calibration_lines(results)
-    if results.get("kind") in DYNAMIC_KINDS:
-        from procedures._report_dynamic import dynamic_result_lines
+def dynamic_key_results(results: Mapping[str, Any]) -> dict[str, Any]:
+    """A run measured in motion: its figures per setting, as the export gives them (SI)."""
+    return {"kind": results["kind"], "settings": dynamic_figures(results)}
 
-        return dynamic_result_lines(results)
-    return []
+
+def iso_points(results: Mapping[str, Any]) -> dict[str, dict[str, Any]]:
+    """Per ISO point of an ``iso9283`` results dict: ``n`` and every scalar figure and interval of its
+    statistics (``rp_l``, ``rp_l_ci``, ``ap_p`` ..., SI), without the pose lists. Where the results carry
+    figure objects (docs/results.md) their value replaces the statistic (it is the one the report states:
+    noise bias corrected) and ``<figure>_u`` is its expanded uncertainty U (k = 2). What the web view's
+    run page and the OPC UA server show of a run's figures."""
+    points: dict[str, dict[str, Any]] = {}
+    if results.get("kind") != "iso9283":
+        return points
+    for label in results.get("order", []):
+        entry = results["points"].get(label) or {}
+        stats = entry.get("stats") or {}
+        figures: dict[str, Any] = {"n": entry.get("n")}
+        for key, value in stats.items():
+            if key in ("barycentre", "commanded"):
+                continue
+            if isinstance(value, (int, float)) or (isinstance(value, list) and len(value) == 2):
+                figures[key] = value
+        reported = (((results.get("figures") or {}).get("points") or {}).get(label)) or {}
+        for key, figure in reported.items():
+            if isinstance(figure, dict) and isinstance(figure.get("value"), (int, float)):
+                figures[key] = figure["value"]
+                if isinstance(figure.get("expanded_uncertainty"), (int, float)):
+                    figures[f"{key}_u"] = figure["expanded_uncertainty"]
+        if entry.get("error"):
+            figures["error"] = entry["error"]
+        points[label] = figures
+    return points
 
 
 def _aligned(rows: list[list[str]]) -> list[str]:

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from procedures._report_format import (
+from procedures.report._format import (
     ARCSEC,
     Figure,
     figure_cell,
@@ -23,7 +23,7 @@ from procedures._report_format import (
     interval,
     is_number,
 )
-from procedures._svg import Circle, lines, scatter
+from procedures.report._svg import Circle, lines, scatter
 
 RP_FIGURES = ("rp_l", "rp_a", "rp_b", "rp_c")
 AP_FIGURES = ("ap_p", "ap_x", "ap_y", "ap_z", "ap_a", "ap_b", "ap_c")

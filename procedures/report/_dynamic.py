@@ -1,4 +1,4 @@
-"""Report sections of the runs measured in motion (``iso9283_stabilisation``, ``iso9283_path``).
+"""Report sections of the runs measured in motion (pose stabilisation, path characteristics).
 
 Stored in SI; shown in µm, ms, % and mm/s, said in every header. Each figure carries ``± U`` (k = 2)
 where the run evaluated one, and in simulation the truth's figure beside it ("true").
@@ -12,8 +12,8 @@ from typing import Any
 
 import numpy as np
 
-from procedures._report_format import fmt, is_number
-from procedures._svg import lines
+from procedures.report._format import fmt, is_number
+from procedures.report._svg import lines
 
 UM, MS = 1e6, 1e3
 
@@ -173,10 +173,3 @@ def path_lines(results: Mapping[str, Any]) -> list[str]:
                          f"FV {fmt(v.get('fv'), 1e3)} mm/s")
         out.append(f"{s['speed_percent']:g} %: " + "; ".join(parts))
     return out
-
-
-def dynamic_result_lines(results: Mapping[str, Any]) -> list[str]:
-    """The CLI's end-of-run table of a dynamic run (plain text)."""
-    if results.get("kind") == "iso9283_stabilisation":
-        return stabilisation_lines(results)
-    return path_lines(results)

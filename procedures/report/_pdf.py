@@ -18,7 +18,7 @@ def render_pdf(html: str) -> bytes:
 
     Parameters
     ----------
-    html : a report from ``procedures._report.render_report`` (self-contained: no external resources).
+    html : a report from ``procedures.report._document.render_report`` (self-contained: no external resources).
 
     Returns
     -------

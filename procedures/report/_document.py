@@ -1,22 +1,20 @@
-"""One self-contained HTML report per run (screen and print from one file; the PDF renders the same), and
-CSV / JSON exports. Units are converted at this edge only: here and in the ``_report_*`` modules, whose
-sections the procedure kinds use for their results (see docs/report.md)."""
+"""One self-contained HTML report per run (screen and print from one file; the PDF renders the same).
+
+Units are converted at this edge only: here and in the section modules (``_iso``, ``_calibration``,
+``_dynamic``, ``_conditions``), which the registry (``_sections``) picks by the shape of a run's results
+(see docs/report.md)."""
 
 from __future__ import annotations
 
-import csv
-import io
-import json
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict
 from html import escape
 from typing import Any
 
-from procedures._report_conditions import banner_html, conditions_html, name_note, report_title
-from procedures._report_format import display_json, first_line, key_value_table
-from procedures._report_style import stylesheet
-from procedures.kinds import KINDS
+from procedures.report._conditions import banner_html, conditions_html, name_note, report_title
+from procedures.report._format import display_json, first_line, key_value_table
+from procedures.report._sections import results_html
+from procedures.report._style import stylesheet
 from procedures.store import Sample
 
 
@@ -44,18 +42,6 @@ def robot_label(run: Mapping[str, Any]) -> str:
     if run.get("robot_serial"):
         return f"{run.get('robot_model') or 'robot'} s/n {run['robot_serial']}"
     return f"station {run.get('station_name') or '?'}"
-
-
-def _results_html(run: dict[str, Any]) -> str:
-    """The results section, written by the run's procedure kind."""
-    results = run.get("results")
-    if not results:
-        return "<section class=part id=results><h2>Results</h2><p>No results: the run has not finished.</p></section>"
-    kind = KINDS.get(run["procedure"])
-    if kind is None:
-        return (f"<section class=part id=results><h2>Results</h2><p>No report section for procedure "
-                f"{escape(run['procedure'])}: results only in the export.</p></section>")
-    return kind.report_html(results)
 
 
 def _header_html(run: dict[str, Any], samples: Sequence[Sample]) -> str:
@@ -167,45 +153,12 @@ def render_report(run: dict[str, Any], samples: Sequence[Sample], events: Sequen
     -------
     str
         The HTML document; its print stylesheet (A4, running headers, page numbers) is what
-        ``procedures._report_pdf.render_pdf`` renders.
+        ``procedures.report._pdf.render_pdf`` renders.
     """
     title = report_title(run)
     style = stylesheet(run_id=run["id"], procedure=str(run.get("procedure_name") or run["procedure"]),
                        robot=robot_label(run), title=title)
-    body = (f"<h1>{escape(title)}</h1>{banner_html(run)}{_header_html(run, samples)}{_results_html(run)}"
+    body = (f"<h1>{escape(title)}</h1>{banner_html(run)}{_header_html(run, samples)}{results_html(run)}"
             f"{conditions_html(run)}{_failed_html(samples, superseded)}{signoff_html()}{_appendix_html(run, events)}")
     return (f"<!DOCTYPE html><html lang=en><head><meta charset='utf-8'><title>{escape(title)} — run {run['id'][:8]}"
             f"</title><style>{style}</style></head><body>{body}</body></html>")
-
-
-SAMPLE_COLUMNS = (
-    ["run_id", "step_index", "step_key", "phase", "label", "ok", "error"]
-    + [f"commanded_tcp_{k}" for k in ("x_m", "y_m", "z_m", "rx_rad", "ry_rad", "rz_rad")]
-    + [f"solved_{k}" for k in ("x_m", "y_m", "z_m", "alpha_rad", "theta_rad", "gamma_rad")]
-    + [f"corrected_{k}" for k in ("x_m", "y_m", "z_m", "alpha_rad", "theta_rad", "gamma_rad")]
-    + ["residual_rms_m", "reference_value", "interferometer_m", "table_rad", "t_start", "t_measured", "t_committed"]
-)
-
-
-def export_csv(samples: Sequence[Sample]) -> str:
-    """One row per sample, SI columns with their units in the names."""
-    out = io.StringIO()
-    writer = csv.writer(out)
-    writer.writerow(SAMPLE_COLUMNS)
-    for s in samples:
-        commanded = (s.commanded or {}).get("tcp_pose") or [None] * 6
-        solved = (s.solved or {}).get("pose") or [None] * 6
-        corrected = (s.corrected or {}).get("pose") or [None] * 6
-        ref = s.reference or {}
-        writer.writerow([s.run_id, s.step_index, s.step_key, s.phase, s.label, int(s.ok), s.error or "",
-                         *commanded, *solved, *corrected, (s.solved or {}).get("residual_rms"), ref.get("value"),
-                         ref.get("interferometer_m"), ref.get("table_rad"), s.t_start, s.t_measured, s.t_committed])
-    return out.getvalue()
-
-
-def export_json(run: dict[str, Any], samples: Sequence[Sample], events: Sequence[dict[str, Any]],
-                superseded: Sequence[Sample] = ()) -> str:
-    """The run row, its samples, the failed samples measured again later, and its events as one JSON document."""
-    return json.dumps({"run": run, "samples": [asdict(s) for s in samples],
-                       "superseded_samples": [asdict(s) for s in superseded], "events": events},
-                      indent=1, default=str)
