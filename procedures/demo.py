@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from procedures._cli_display import Display
+from procedures.cli import Display
 from procedures.engine import open_engine, resolve_procedure_path
 from procedures.report import render_report
 from procedures.store import RunState, RunStore

@@ -12,9 +12,7 @@ import time
 
 import pytest
 
-from procedures._cli_common import ask_pause_key
-from procedures._cmd_sim import endpoint_lines
-from procedures.cli import build_parser
+from procedures.cli import ask_pause_key, build_parser, endpoint_lines
 
 
 @pytest.fixture

@@ -14,9 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from procedures._cli_common import drive
-from procedures._cli_display import Display
-from procedures.cli import main
+from procedures.cli import Display, drive, main
 from procedures.engine import open_engine
 from procedures.station import ConfigError
 from procedures.store import RunState

@@ -2,7 +2,7 @@
 
 For every adapter: a typo in a setting, a wrong adapter name and a wrong type, each reported as
 ``station.yaml:LINE: devices.<role>.<setting>: ...`` with the allowed names, exit code 1 and no
-traceback; through ``procedures.engine._loading.load_station``, through ``procedures.cli.main`` and
+traceback; through ``procedures.engine.load_station``, through ``procedures.cli.main`` and
 once through the ``instrument`` command in its own process. Plus: the station the simulated
 cell writes validates, and the published schema shows every adapter's fields.
 """

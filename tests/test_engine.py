@@ -397,7 +397,7 @@ def _signals(tmp_path, station, cell, proc, presses, pause_handler):
     samples are committed (the handlers run in this thread, as in the CLI)."""
     import signal
 
-    from procedures._cli_common import signals_control
+    from procedures.cli import signals_control
 
     def listener(event):
         if event["event"] == "progress":
@@ -447,7 +447,7 @@ def test_sigterm_and_sighup_abort_like_a_second_ctrl_c(setup, name):
 
 
 def test_a_detached_pause_returns_at_once(setup):
-    from procedures._cli_common import detach_at_once
+    from procedures.cli import detach_at_once
 
     tmp_path, station, cell = setup
     cell.protective_stop_on_moves = {3}

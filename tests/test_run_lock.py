@@ -13,8 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from procedures._cli_common import cell_directory
-from procedures.cli import main
+from procedures.cli import cell_directory, main
 from procedures.engine import open_engine
 from procedures.station import RunLocked, StateConflict
 from procedures.store import RunState, RunStore

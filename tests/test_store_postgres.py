@@ -79,8 +79,8 @@ def test_samples_events_and_prefixes_as_on_sqlite(url, tmp_path):
 
 _TRY_LEASE = """
 import sys
-from procedures.station._errors import RunLocked
-from procedures.store._store import RunStore
+from procedures.station import RunLocked
+from procedures.store import RunStore
 with RunStore(sys.argv[1], url=sys.argv[2]) as store:
     try:
         store.acquire_lease(sys.argv[3])

@@ -30,7 +30,7 @@ import yaml
 ROOT = Path.cwd()
 sys.path.insert(0, str(ROOT))
 
-from procedures.engine import open_engine  # noqa: E402  (runs against 410f450: its private names)
+from procedures._api import open_engine  # noqa: E402  (runs against 410f450: its private names)
 from tests.fakes import FakeCell, FakeScience, write_station  # noqa: E402
 
 # The outputs are taken by this checkout's tests/stored_outputs.py (only public names: the same at both commits).

@@ -15,7 +15,7 @@ import json
 import time
 from typing import Any
 
-from procedures._cli_common import READ_EXIT_CODES, add_runs_dir, open_store
+from procedures.cli._common import READ_EXIT_CODES, add_runs_dir, open_store
 from procedures.report import changes, figure_columns, history_figures, history_procedures, iso_rows, shown
 
 

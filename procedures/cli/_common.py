@@ -1,6 +1,6 @@
 """Shared pieces of the run-related subcommands: the runs folder and store, the pause prompt, signals,
 and the end of a run (its key results, its report, the one line of ``--quiet``, the ``done`` event).
-The progress display is ``procedures._cli_display``; the results' lines ``procedures.report._summaries``.
+The progress display is ``procedures.cli._display``; the results' lines ``procedures.report._summaries``.
 
 Signals while a run runs (``signals_control``): the first Ctrl-C pauses at the next safe point, a
 second one (before the run has resumed from that pause) aborts at once; the count starts again at
@@ -24,7 +24,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
-from procedures._cli_display import Display
+from procedures.cli._display import Display
 from procedures.engine import PauseDecision
 from procedures.report import result_lines, result_summary
 from procedures.station import RunError

@@ -1,6 +1,6 @@
-"""The ``instrument`` command line.
+"""The ``instrument`` command line: the parser and ``main``.
 
-Each subcommand lives in its own module ``procedures/_cmd_<name>.py`` exposing
+Each subcommand lives in its own module ``procedures/cli/_<name>.py`` exposing
 ``register(subparsers)``; this file only assembles them.
 
 No command prints a traceback: a problem with the input or the run is one line on stderr (exit
@@ -23,23 +23,22 @@ import traceback
 from pathlib import Path
 
 from instrument import __version__
-from procedures import (
-    _cmd_export,
-    _cmd_history,
-    _cmd_locate,
-    _cmd_report,
-    _cmd_resume,
-    _cmd_run,
-    _cmd_runs,
-    _cmd_serve,
-    _cmd_show,
-    _cmd_sim,
-    _cmd_validate,
+from procedures.cli import (
+    _export,
+    _history,
+    _locate,
+    _report,
+    _resume,
+    _run,
+    _runs,
+    _serve,
+    _show,
+    _sim,
+    _validate,
 )
 from procedures.station import ConfigError, InputRefused, RunError
 
-COMMANDS = (_cmd_locate, _cmd_sim, _cmd_validate, _cmd_run, _cmd_resume, _cmd_runs, _cmd_show, _cmd_history,
-            _cmd_report, _cmd_export, _cmd_serve)
+COMMANDS = (_locate, _sim, _validate, _run, _resume, _runs, _show, _history, _report, _export, _serve)
 EXIT_CODES_HELP = """exit codes:
   0    done (run/resume: the run FINISHED)
   1    failed: bad input, no such run or store, or the run FAILED (one line on stderr, never a traceback)
@@ -132,12 +131,12 @@ def main(argv: list[str] | None = None) -> int:
     library_log = _LibraryLog(args)
     logging.getLogger().addHandler(library_log)  # instead of Python's last-resort print to stderr
     try:
-        return _run(args)
+        return _handled(args)
     finally:
         logging.getLogger().removeHandler(library_log)
 
 
-def _run(args: argparse.Namespace) -> int:
+def _handled(args: argparse.Namespace) -> int:
     try:
         return int(args.handler(args) or 0)
     except KeyboardInterrupt:
@@ -157,7 +156,3 @@ def _run(args: argparse.Namespace) -> int:
         first = (str(exc).splitlines() or [""])[0][:300]
         print(f"instrument: internal error: {type(exc).__name__}: {first} (traceback in {where})", file=sys.stderr)
         return 1
-
-
-if __name__ == "__main__":
-    sys.exit(main())

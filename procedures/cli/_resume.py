@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import sys
 
-from procedures._cli_common import (
+from procedures.cli._common import (
     RUN_EXIT_CODES,
     Display,
     add_display,

@@ -7,7 +7,7 @@ import json
 import shutil
 import time
 
-from procedures._cli_common import READ_EXIT_CODES, add_runs_dir, open_store
+from procedures.cli._common import READ_EXIT_CODES, add_runs_dir, open_store
 from procedures.store import RunState
 
 REASON_CHARS = 60

@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from procedures._cli_common import (
+from procedures.cli._common import (
     RUN_EXIT_CODES,
     Display,
     add_display,

@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 import sys
 
-from procedures._cli_common import add_runs_dir, find_run, open_store, write_output
+from procedures.cli._common import add_runs_dir, find_run, open_store, write_output
 
 
 def register(subparsers) -> None:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 
-from procedures._cli_common import READ_EXIT_CODES, add_runs_dir, find_run, open_store
+from procedures.cli._common import READ_EXIT_CODES, add_runs_dir, find_run, open_store
 
 
 def register(subparsers) -> None:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from procedures._cli_common import add_runs_dir, find_run, open_store, write_output
+from procedures.cli._common import add_runs_dir, find_run, open_store, write_output
 from procedures.station import RunError
 
 

@@ -11,7 +11,7 @@ from typing import Any
 
 import yaml
 
-from procedures._cli_common import seconds_value, seed_value
+from procedures.cli._common import seconds_value, seed_value
 from procedures.station import InputRefused, read_text_file
 
 
