@@ -19,12 +19,11 @@ from typing import Any
 import numpy as np
 import yaml
 
+from instrument import ARCSEC
 from procedures.cli import Display
 from procedures.engine import open_engine, resolve_procedure_path
 from procedures.report import render_report
 from procedures.store import RunState, RunStore
-
-ARCSEC = np.pi / (180 * 3600)
 
 # The demo keeps the paper's calibration grids and cycle count; what it shortens are the waits
 # that a real cell needs and a simulated one does not (settling, averaging, repeated frames).

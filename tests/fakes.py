@@ -25,6 +25,7 @@ from drivers.camera import Frame, GrabFailed
 from drivers.interferometer import DatumLost, EnvironmentReading, FeedGap, HeadOptics
 from drivers.robot import MotionEnvelope, ProtectiveStop, RobotIdentity, RobotState
 from drivers.rotary_table import TableState
+from instrument import COMPONENTS
 from procedures.station import (
     CalibrationResult,
     MeasurementFailed,
@@ -37,7 +38,6 @@ from procedures.station import (
 
 REFERENCE_TCP = [0.45, -0.10, 0.27, np.pi, 0.0, 0.0]
 TOOL_IN_OPR = [0.0, 0.0, 0.07, 0.0, 0.0, 0.0]
-COMPONENTS = ("x", "y", "z", "a", "b", "c")
 
 
 def station_dict(truth_log: str | None = None, **overrides) -> dict:

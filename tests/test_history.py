@@ -11,8 +11,9 @@ import math
 
 import pytest
 
+from instrument import ARCSEC
 from procedures.cli import main
-from procedures.report import ARCSEC, iso_points, iso_rows, point_figure
+from procedures.report import iso_points, iso_rows, point_figure
 from procedures.serve import StoreReader
 from procedures.store import RunState, RunStore
 

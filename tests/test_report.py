@@ -18,11 +18,10 @@ from pathlib import Path
 
 import pytest
 
+from instrument import ARCSEC
 from procedures.engine import open_engine
 from procedures.report import export_csv, export_json, quantity, render_report
 from tests.fakes import FakeCell, FakeScience, write_station
-
-ARCSEC = math.pi / (180 * 3600)
 
 
 def fake_run(tmp_path: Path, kind: str, name: str | None = None, **params):

@@ -9,14 +9,13 @@ from pathlib import Path
 
 import pytest
 
+from instrument import ARCSEC
 from procedures.cli import main
 from procedures.report import PdfUnavailable, render_pdf, render_report, robot_label
 from tests.test_report import as_stored_by_older_code, fake_run, with_stored_figures
 
 pdfminer = pytest.importorskip("pdfminer.high_level", reason="pdfminer.six (a test dependency) reads the PDF back")
 from pdfminer.layout import LTTextLine  # noqa: E402  (after the skip: only with pdfminer installed)
-
-ARCSEC = math.pi / (180 * 3600)
 
 
 @pytest.fixture(scope="module", autouse=True)

@@ -24,7 +24,6 @@ from procedures.station import InstrumentScience
 from procedures.store import RunStore
 from tests.fakes import FakeCell, FakeScience, station_dict
 
-ARCSEC = np.pi / (180 * 3600)
 FIGURE_KEYS = {"value", "expanded_uncertainty", "coverage_factor", "confidence_interval", "true"}
 
 

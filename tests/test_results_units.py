@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import yaml
 
+from instrument import ARCSEC
 from instrument.environment import AirConditions
 from instrument.uncertainty import Correlation
 from procedures.kinds import environment_summary, pose_directions, scale_uncertainty
@@ -22,8 +23,6 @@ from procedures.kinds.iso import (
 )
 from procedures.station import StationFile
 from tests.fakes import station_dict
-
-ARCSEC = math.pi / (180 * 3600)
 
 
 def test_pose_directions_are_the_signs_of_the_move():

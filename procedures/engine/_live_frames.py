@@ -17,7 +17,6 @@ from typing import Any
 import cv2
 import numpy as np
 
-SCREENS = ("x", "y", "z")
 LIVE_DIR = "live"
 LIVE_INDEX = "latest.json"
 DEFAULT_SCALE = 4  # 1024 × 1040 px → 256 × 260 px: a phone shows three of them side by side

@@ -19,11 +19,11 @@ from drivers.camera import Frame, GrabFailed
 from drivers.interferometer import Interferometer
 from drivers.robot import MotionEnvelope, Robot
 from drivers.rotary_table import RotaryTable
+from instrument import COMPONENTS, SCREENS
 from procedures.engine._live_frames import write_live_frames
 from procedures.engine._streaming import Tracker, acquire_stream, compensate_with, distance_to, seconds_of
 from procedures.kinds import MotionParameters, PoseReading, Step, StreamRecord, retry_wait
 from procedures.station import (
-    COMPONENTS,
     Compensator,
     MeasurementFailed,
     PoseMeasurement,
@@ -32,8 +32,6 @@ from procedures.station import (
     StationFile,
     StationRuntime,
 )
-
-SCREENS = ("x", "y", "z")
 
 
 def robot_speed(envelope: MotionEnvelope, params: MotionParameters) -> tuple[float, float]:

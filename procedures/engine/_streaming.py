@@ -19,10 +19,10 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from instrument import SCREENS
 from procedures.kinds import StreamRecord
 
 MAX_TIMESTAMP_SPREAD_S = 1e-3
-SCREENS = ("x", "y", "z")
 
 
 class Tracker(Protocol):

@@ -19,8 +19,9 @@ from typing import Any, Literal
 
 import numpy as np
 
+from instrument import COMPONENTS
 from procedures.kinds._protocol import Step, StepContext
-from procedures.station import COMPONENTS, matrix_to_euler, tcp_in_m, translated_in_frame
+from procedures.station import matrix_to_euler, tcp_in_m, translated_in_frame
 
 Approach = Literal["one", "both"]
 MOVED_M = 1e-6  # a component that moved less than this (m) is not approached from either side

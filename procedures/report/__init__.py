@@ -37,7 +37,6 @@ from procedures.report._sections import (
     unregister_section,
 )
 from procedures.report._summaries import (
-    ARCSEC,
     calibration_lines,
     changes,
     figure_columns,
@@ -50,7 +49,7 @@ from procedures.report._summaries import (
 from procedures.report._svg import Circle, lines, scatter
 
 __all__ = [
-    "ARCSEC", "MICROMETRES", "SECTIONS", "Circle", "Figure", "PdfUnavailable", "ResultSection", "calibration_lines",
+    "MICROMETRES", "SECTIONS", "Circle", "Figure", "PdfUnavailable", "ResultSection", "calibration_lines",
     "changes", "export_csv", "export_json", "figure", "figure_cell", "figure_columns", "held_out_rows",
     "history_figures", "history_procedures", "iso_points", "iso_rows", "lines", "point_figure", "quantity",
     "register_section", "render_pdf", "render_report", "result_lines", "result_summary", "robot_label", "scatter",

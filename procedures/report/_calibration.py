@@ -18,11 +18,11 @@ from typing import Any
 
 import numpy as np
 
+from instrument import COMPONENTS
 from procedures.report._format import Figure, Unit, component_unit, figure_cell, fmt, is_number
 from procedures.report._svg import scatter
 
 LOPO, LOGO = "leave-one-point-out", "leave-one-group-out"
-COMPONENTS = ("x", "y", "z", "a", "b", "c")
 DEGREE = 57.29577951308232
 
 

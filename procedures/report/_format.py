@@ -10,7 +10,8 @@ from dataclasses import dataclass
 from html import escape
 from typing import Any, TypeGuard
 
-ARCSEC = math.pi / (180 * 3600)
+from instrument import ARCSEC
+
 MICRON = 1e-6
 DISPLAY_DIGITS = 9  # significant digits in the appendix's JSON: 0.30000000000000004 → 0.3, nm in m
 

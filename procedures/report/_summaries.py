@@ -14,9 +14,9 @@ import math
 from collections.abc import Mapping, Sequence
 from typing import Any
 
+from instrument import ARCSEC
 from procedures.kinds.dynamic import dynamic_figures
 
-ARCSEC = math.pi / (180 * 3600)
 FIGURE_COLUMNS = {"rp_l": ("RP_l", "µm", 1e6), "rp_a": ("RP_a", "″", 1 / ARCSEC), "rp_b": ("RP_b", "″", 1 / ARCSEC),
                   "rp_c": ("RP_c", "″", 1 / ARCSEC), "ap_p": ("AP_P", "µm", 1e6)}
 """Per ISO figure a terminal column shows: its name, unit and scale from SI."""

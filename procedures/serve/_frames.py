@@ -22,7 +22,8 @@ from typing import Any
 
 import numpy as np
 
-from procedures.engine import DEFAULT_SCALE, LIVE_DIR, LIVE_INDEX, SCREENS, png_of
+from instrument import SCREENS
+from procedures.engine import DEFAULT_SCALE, LIVE_DIR, LIVE_INDEX, png_of
 from procedures.store import Sample
 
 

@@ -7,7 +7,8 @@ What it offers:
 - the devices of a station, opened on first use, and who mounts and aligns things (``StationRuntime``,
   ``Operator``);
 - the measurement core bound to a station (``Science``, ``InstrumentScience``, ``Compensator``,
-  ``PoseMeasurement``, ``MeasurementFailed``, ``CalibrationResult``) and the pose components' names;
+  ``PoseMeasurement``, ``MeasurementFailed``, ``CalibrationResult``) and which pose component each axis'
+  rotation is (``ANGLE_COMPONENT``);
 - the simulated cell's truth log (``TruthLog``);
 - the geometry of UR and Euler poses (``ur_to_matrix``, ``tcp_in_m``, ``translated_in_frame`` ...);
 - the errors of the procedure layer (``ConfigError``, ``RunError`` and its kinds).
@@ -30,7 +31,6 @@ from procedures.station._models import Event, HookSpec, StationFile, Vec3
 from procedures.station._runtime import Operator, StationRuntime
 from procedures.station._science import (
     ANGLE_COMPONENT,
-    COMPONENTS,
     CalibrationResult,
     Compensator,
     InstrumentScience,
@@ -42,7 +42,7 @@ from procedures.station._truth import TruthLog
 from procedures.station._yamlmarks import MarkedYaml, load_marked
 
 __all__ = [
-    "ANGLE_COMPONENT", "COMPONENTS", "CalibrationResult", "Compensator", "ConfigError", "DryRunFailed", "Event",
+    "ANGLE_COMPONENT", "CalibrationResult", "Compensator", "ConfigError", "DryRunFailed", "Event",
     "HookSpec", "InputRefused", "InstrumentScience", "MarkedYaml", "MeasurementFailed", "Operator",
     "PoseMeasurement", "RunAborted", "RunError", "RunLocked", "Science", "StateConflict", "StationFile",
     "StationRuntime", "TruthLog", "Vec3", "euler_to_matrix", "load_marked", "matrix_to_euler",

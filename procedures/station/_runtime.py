@@ -17,6 +17,7 @@ from drivers.camera import Camera
 from drivers.interferometer import Interferometer
 from drivers.robot import MotionEnvelope, Robot
 from drivers.rotary_table import RotaryTable
+from instrument import SCREENS
 from procedures.station._models import StationFile
 
 
@@ -97,7 +98,6 @@ def default_operator(station: StationFile) -> Operator:
 
 Device = Robot | Camera | RotaryTable | Interferometer
 DeviceT = TypeVar("DeviceT", Robot, Camera, RotaryTable, Interferometer)
-SCREENS = ("x", "y", "z")
 
 
 class StationRuntime:

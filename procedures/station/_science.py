@@ -32,7 +32,6 @@ from instrument.vision import CrossMeasurement, CrossNotFound, locate_cross
 from procedures.station._files import read_text_file
 from procedures.station._models import StationFile
 
-COMPONENTS = ("x", "y", "z", "a", "b", "c")  # order of a (6,) pose in M; a, b, c = alpha, theta, gamma
 ANGLE_COMPONENT = {"x": "a", "y": "b", "z": "c"}  # rotation about M's axis k
 
 

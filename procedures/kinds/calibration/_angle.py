@@ -16,6 +16,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import Field, ValidationInfo, field_validator, model_validator
 
+from instrument import COMPONENTS
 from procedures.kinds._approach import Approach, approach_table, directions_of
 from procedures.kinds._parameters import AxisName, MotionParameters, ProcedureBase, all_axes
 from procedures.kinds._protocol import (
@@ -35,7 +36,7 @@ from procedures.kinds.calibration._common import (
     inclusive_range,
     line_points,
 )
-from procedures.station import ANGLE_COMPONENT, COMPONENTS, StationFile
+from procedures.station import ANGLE_COMPONENT, StationFile
 from procedures.store import Sample
 
 

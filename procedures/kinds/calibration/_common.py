@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 from pydantic import ValidationInfo
 
-from instrument import __version__
+from instrument import COMPONENTS, __version__
 from instrument.environment import AirConditions
 from procedures.kinds._conditions import local_time, operator_of
 from procedures.kinds._environment import environment_summary
@@ -31,7 +31,6 @@ from procedures.kinds.calibration._results import (
     reference_vs_truth,
     residual_uncertainties,
 )
-from procedures.station import COMPONENTS
 from procedures.store import Sample
 
 MAX_PLAN_STEPS = 100_000

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from instrument import __version__
+from instrument import COMPONENTS, __version__
 from instrument.uncertainty import CoverageCase, IsoRun, UncertaintyBudget, UncertaintyError, iso_uncertainty
 from procedures.kinds._conditions import local_time, sessions_of
 from procedures.kinds._environment import environment_summary
@@ -23,7 +23,7 @@ from procedures.kinds._protocol import RESULTS_VERSION, AnalysisContext
 from procedures.kinds.iso._budget import BudgetUnavailable, iso_budget, squareness_terms
 from procedures.kinds.iso._parameters import IsoParameters
 from procedures.kinds.iso._test_conditions import deviations_of, test_conditions
-from procedures.station import COMPONENTS, Compensator, euler_to_matrix, matrix_to_euler, tcp_in_m, ur_to_matrix
+from procedures.station import Compensator, euler_to_matrix, matrix_to_euler, tcp_in_m, ur_to_matrix
 from procedures.store import Sample
 
 DISTANCE_PAIR = ("P2", "P4")  # ISO 9283 §7.? distance accuracy and repeatability: P2 → P4 (the cube's diagonal)

@@ -37,6 +37,7 @@ from typing import Any
 
 import numpy as np
 
+from instrument import COMPONENTS
 from instrument.uncertainty import (
     BudgetTerm,
     Correlation,
@@ -55,7 +56,6 @@ from procedures.kinds._references import (
     TABLE_ENCODER_UNCERTAINTY_RAD,
     scale_uncertainty,
 )
-from procedures.station import COMPONENTS
 
 INSTRUMENT_EXPANSION_PER_K = 23e-6  # the screens' frame: aluminium
 UNKNOWN_TEMPERATURE_HALF_WIDTH_K = 1.0

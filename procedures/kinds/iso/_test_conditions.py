@@ -12,8 +12,9 @@ from typing import Any
 
 import numpy as np
 
+from instrument import COMPONENTS
 from procedures.kinds.iso._parameters import IsoParameters, cube_path
-from procedures.station import COMPONENTS, StationFile, translated_in_frame, ur_to_matrix
+from procedures.station import StationFile, translated_in_frame, ur_to_matrix
 
 STANDARD = "ISO 9283:1998"
 ISO_CYCLES = 30
