@@ -70,11 +70,11 @@ class StationaryRepeatKind:
 
     def measure(self, step: Step, params: StationaryParameters, ctx: StepContext) -> Reading:
         ctx.settle()
-        return Reading(pose=ctx.measure_pose(step), reference={})
+        return Reading(pose=ctx.measure_pose(step))
 
     def analyse(self, samples: Sequence[Sample], params: StationaryParameters, ctx: AnalysisContext) -> Analysis:
         at_point = [s for s in samples if s.phase == "point" and s.ok and s.solved]
-        positions = np.array([s.solved["pose"][:3] for s in at_point if s.solved])
+        positions = np.array([s.solved.pose[:3] for s in at_point if s.solved])
         results: dict[str, Any] = {"kind": "stationary", "n": len(positions),
                                    "spread_m": positions.std(axis=0, ddof=1).tolist()}
         if ctx.truth is not None:

@@ -391,11 +391,11 @@ def test_exports(tmp_path):
     run, samples, events = fake_run(tmp_path, "iso9283_repeatability", cycles=2)
     rows = list(csv.DictReader(io.StringIO(export_csv(samples))))
     assert len(rows) == len(samples) == 15
-    assert float(rows[3]["solved_x_m"]) == pytest.approx(samples[3].solved["pose"][0])
+    assert float(rows[3]["solved_x_m"]) == pytest.approx(samples[3].solved.pose[0])
     assert rows[0]["step_key"] == "transform/c000/P1"
     data = json.loads(export_json(run, samples, events))
     assert data["run"]["id"] == run["id"] and len(data["samples"]) == 15
-    assert data["samples"][0]["commanded"]["tcp_pose"] == samples[0].commanded["tcp_pose"]
+    assert data["samples"][0]["commanded"]["tcp_pose"] == list(samples[0].commanded.tcp_pose)
 
 
 def test_u_has_two_significant_digits_and_the_value_the_same_decimal_place():

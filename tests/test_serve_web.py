@@ -78,7 +78,7 @@ def test_points_and_figures_are_the_stored_ones(client, store):
     points = client.get(f"/api/runs/{first}/points").json()["points"]
     assert [p["key"] for p in points] == [s.step_key for s in samples]
     for point, sample in zip(points, samples):
-        assert point["pose"] == pytest.approx((sample.corrected or sample.solved)["pose"])
+        assert point["pose"] == pytest.approx(sample.pose)
     assert len(client.get(f"/api/runs/{first}/points", params={"after": 9}).json()["points"]) == len(samples) - 10
     detail = client.get(f"/api/runs/{first}").json()
     for label, figures in detail["iso_points"].items():

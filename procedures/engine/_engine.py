@@ -46,7 +46,7 @@ from procedures.station import (
     StationRuntime,
     TruthLog,
 )
-from procedures.store import RESUMABLE_STATES, Lease, RunState, RunStore
+from procedures.store import RESUMABLE_STATES, Commanded, Lease, RunState, RunStore, Sample, as_pose
 
 PauseDecision = Literal["resume", "abort", "detach"]
 """What a paused run does next: continue, abort (devices stopped), or stay PAUSED for ``instrument resume``."""
@@ -288,7 +288,7 @@ class RunEngine:
         context = AnalysisContext(run_id=self.run_id, station=self.station.model, science=self.science,
                                   compensators=self.compensators, run_dir=self.store.run_dir(self.run_id),
                                   truth=_truth_log(self.station.model),
-                                  streams=self._streams)
+                                  streams=self._streams, sessions=self.store.sessions(self.run_id))
         analysis = self.kind.analyse(self.store.samples(self.run_id), self.params, context)
         if analysis.calibration_record_id is not None:
             self.store.update_run(self.run_id, calibration_record_id=analysis.calibration_record_id)
@@ -361,23 +361,24 @@ class RunEngine:
             self._establish(step.setup)
         reading = self.kind.measure(step, self.params, context)
         pose = reading.pose
-        commanded = {"tcp_pose": step.tcp_pose, "table_angle": step.table_angle, "nominal": step.meta.get("nominal")}
-        solved = None if pose.solved is None else {**pose.solved, "attempts": pose.attempts}
-        self.store.add_sample(
-            self.run_id, step.index, step.key, step.phase, label=step.label, ok=pose.ok, error=pose.error,
-            commanded=commanded, solved=solved, corrected=pose.corrected, crosses=pose.crosses,
-            reference=reading.reference, meta=step.meta, frames=pose.frames, t_start=t_start,
-            t_measured=pose.t_measured, stream=None if reading.stream is None else reading.stream.to_stored(),
-        )
+        nominal = step.meta.get("nominal")
+        commanded = Commanded(tcp_pose=None if step.tcp_pose is None else as_pose(step.tcp_pose),
+                              table_angle=step.table_angle, nominal=None if nominal is None else float(nominal))
+        sample = Sample(run_id=self.run_id, step_index=step.index, step_key=step.key, phase=step.phase,
+                        label=step.label, ok=pose.ok, error=pose.error, commanded=commanded, solved=pose.solved,
+                        corrected=pose.corrected, crosses=pose.crosses, reference=reading.reference, meta=step.meta,
+                        frames=tuple(pose.frames or ()), t_start=t_start, t_measured=pose.t_measured)
+        self.store.add_sample(sample, stream=None if reading.stream is None else reading.stream.to_stored(),
+                              session=reading.session)
         # Committed: from here on nothing can lose this sample.
         if repeat:
             self._log("remeasured", f"{step.key}: failed in an earlier session, measured again "
                                     f"({'ok' if pose.ok else 'failed again'}); the failed sample is kept as superseded")
         self._durations.append(time.time() - t_start - (sum(self._setup_durations) - setups_before))
         event = self._emit("point_measured", step=step.index, key=step.key, label=step.label, ok=pose.ok,
-                           error=pose.error, pose=pose.pose,
-                           residual_rms=(pose.solved or {}).get("residual_rms"),
-                           reference=reading.reference.get("value"))
+                           error=pose.error, pose=None if pose.pose is None else list(pose.pose),
+                           residual_rms=None if pose.solved is None else pose.solved.quality.residual_rms,
+                           reference=reading.reference.value)
         self.hooks.emit(event)
         self._emit_progress(step)
         return pose

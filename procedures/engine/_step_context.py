@@ -11,7 +11,7 @@ from __future__ import annotations
 import re
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -32,6 +32,9 @@ from procedures.station import (
     StationFile,
     StationRuntime,
 )
+from procedures.store import CorrectedPose, PoseQuality, SolvedPose, as_pose
+
+S = TypeVar("S")
 
 
 def robot_speed(envelope: MotionEnvelope, params: MotionParameters) -> tuple[float, float]:
@@ -64,7 +67,13 @@ class StationStepContext:
         self._compensators = list(compensators)
         self._wait, self._check_abort, self._log, self._run_dir = wait, check_abort, log, run_dir
         self._emit = emit
-        self.session: dict[str, Any] = {}
+        self._states: dict[type, Any] = {}  # the kind's (and its helpers') memory of this session, by type
+
+    def session_state(self, state: type[S]) -> S:
+        if state not in self._states:
+            self._states[state] = state()
+        found: S = self._states[state]
+        return found
 
     def wait(self, seconds: float) -> None:
         self._wait(seconds)
@@ -124,8 +133,8 @@ class StationStepContext:
                 continue
             write_live_frames(self._run_dir, step.index, step.key, {s: f.image for s, f in triples[-1].items()},
                               measurements[-1].crosses)
-            solved = _solved(measurements)
-            implausible = _implausible(solved["pose"], expected, p)
+            solved = _solved(measurements, attempts=attempt + 1)
+            implausible = _implausible(solved.pose, expected, p)
             if implausible:  # a frame of another pose (stale, or another target): never a good sample
                 last_error = f"attempt {attempt + 1}: {implausible}"
                 self._log("measure_failed", f"{step.key}: {last_error}")
@@ -135,7 +144,7 @@ class StationStepContext:
             if p.save_frames == "always":
                 frames_saved += self._save_frames(step, triples, "ok")
             stamps = [f.timestamp for t in triples for f in t.values()]
-            return PoseReading(ok=True, solved=solved, corrected=self._corrected(solved["pose"], direction),
+            return PoseReading(ok=True, solved=solved, corrected=self._corrected(solved.pose, direction),
                                crosses={s: [m.crosses.get(s) for m in measurements] for s in SCREENS},
                                frames=frames_saved or None, t_measured=float(np.mean(stamps)), attempts=attempt + 1)
         return PoseReading(ok=False, error=last_error, frames=frames_saved or None, attempts=p.retries_per_pose + 1)
@@ -184,16 +193,16 @@ class StationStepContext:
                        rate_hz=record.meta.get("rate_hz"), dropped=record.dropped,
                        distance_to_target=None if distance is None else float(distance[i]))
 
-    def _corrected(self, pose: list[float], direction: Mapping[str, int | None] | None) -> dict[str, Any] | None:
+    def _corrected(self, pose: Sequence[float], direction: Mapping[str, int | None] | None) -> CorrectedPose | None:
         if not self._compensators:
             return None
         corrected, flags = np.asarray(pose), []
         for compensator in self._compensators:
             corrected, more = compensator.correct(corrected, direction)
             flags += list(more)
-        return {"pose": [float(v) for v in corrected], "flags": flags,
-                "records": [c.record_id for c in self._compensators],
-                "direction": None if direction is None else dict(direction)}
+        return CorrectedPose(pose=as_pose(corrected), flags=tuple(str(f) for f in flags),
+                             records=tuple(c.record_id for c in self._compensators),
+                             direction=None if direction is None else dict(direction))
 
     def _save_frames(self, step: Step, triples: Sequence[Mapping[str, Frame]], tag: str) -> list[str]:
         folder = self._run_dir / "frames"
@@ -229,13 +238,10 @@ def _implausible(pose: Sequence[float], expected: Mapping[int, float] | None, pa
             f"{params.plausibility_mm:g} mm, {params.plausibility_deg:g}°): a stale or wrong frame")
 
 
-def _solved(measurements: Sequence[PoseMeasurement]) -> dict[str, Any]:
-    """The mean pose of the frame triples, with their spread and each one's pose."""
+def _solved(measurements: Sequence[PoseMeasurement], *, attempts: int) -> SolvedPose:
+    """The mean pose of the frame triples, with their spread and each one's pose: the core's results, typed."""
     poses = np.array([m.pose for m in measurements])
-    return {
-        "pose": poses.mean(axis=0).tolist(),
-        "pose_std": poses.std(axis=0).tolist(),
-        "per_frame": poses.tolist(),
-        "residual_rms": float(np.mean([m.residual_rms for m in measurements])),
-        "components": list(COMPONENTS),
-    }
+    quality = PoseQuality(residual_rms=float(np.mean([m.residual_rms for m in measurements])),
+                          pose_std=as_pose(poses.std(axis=0)), attempts=attempts)
+    return SolvedPose(pose=as_pose(poses.mean(axis=0)), quality=quality, per_frame=tuple(as_pose(p) for p in poses),
+                      components=COMPONENTS)

@@ -26,8 +26,9 @@ from drivers.rotary_table import RotaryTable
 from procedures.kinds._parameters import MotionParameters, ProcedureBase
 from procedures.kinds._setups import Setup
 from procedures.station import Compensator, Science, StationFile, TruthLog
-from procedures.store import Sample
+from procedures.store import CorrectedPose, Pose, Reference, Sample, SessionConditions, SolvedPose
 
+S = TypeVar("S")
 DeviceRole = Literal["robot", "rotary_table", "interferometer"]  # the cameras serve every kind
 RESULTS_VERSION = 2  # the layout of the results the kinds write (docs/results.md); results stored before it have none
 
@@ -99,13 +100,14 @@ class Step:
 class PoseReading:
     """The OPR pose from one step's camera frames, or why there is none (``ok`` False, ``error``).
 
-    ``solved``: mean pose, spread, per-frame poses, residual; ``corrected``: after the calibration
-    records in force; ``frames``: saved frame files, relative to the run folder.
+    ``solved``: the pose as solved, with its quality; ``corrected``: after the calibration records in
+    force; ``crosses``: what the core said of each located cross; ``frames``: saved frame files, relative
+    to the run folder; ``attempts``: how many times the frames were grabbed and solved.
     """
 
     ok: bool
-    solved: dict[str, Any] | None = None
-    corrected: dict[str, Any] | None = None
+    solved: SolvedPose | None = None
+    corrected: CorrectedPose | None = None
     crosses: dict[str, Any] | None = None
     frames: list[str] | None = None
     t_measured: float | None = None
@@ -113,36 +115,41 @@ class PoseReading:
     error: str | None = None
 
     @property
-    def pose(self) -> list[float] | None:
+    def pose(self) -> Pose | None:
         """The best pose: corrected if a record was applied, else solved."""
         best = self.corrected or self.solved
-        return None if best is None else best["pose"]
+        return None if best is None else best.pose
 
 
 @dataclass(frozen=True)
 class Reading:
-    """What one step measured: the pose, and the references the kind read beside it (SI, JSON-able).
+    """What one step measured: the pose, and the references the kind read beside it (SI).
 
-    ``reference["value"]``, when present, is the reference the calibration compares against.
-    ``stream``: the move's pose stream (``_dynamic_stream.StreamRecord``) of a kind that measures in
-    motion; the engine stores it with the sample, in the same transaction.
+    ``reference.value``, when present, is the reference the calibration compares against.
+    ``stream``: the move's pose stream (``StreamRecord``) of a kind that measures in motion; ``session``:
+    the test conditions this session started under, handed back with the session's first reading. The
+    engine stores both with the sample, in the same transaction.
     """
 
     pose: PoseReading
-    reference: dict[str, Any]
+    reference: Reference = field(default_factory=Reference)
     stream: Any = None
+    session: SessionConditions | None = None
 
 
 class StepContext(Protocol):
     """What a kind's ``move`` and ``measure`` may use: the devices, motion at the run's speed,
-    the settle wait, and the frames → pose measurement (retries, saved frames, compensation).
-
-    ``session`` is the kind's memory for one session of the run (one ``execute()``): empty when a
-    run starts or resumes, so whatever a kind keeps there (an interferometer datum, say) is known
-    to be valid only for steps measured by this process since then.
+    the settle wait, the frames → pose measurement (retries, saved frames, compensation), and the
+    kind's memory for this session of the run (``session_state``).
     """
 
-    session: dict[str, Any]
+    def session_state(self, state: type[S]) -> S:
+        """The kind's memory for this session of the run (one ``execute()``): an instance of ``state``, a class
+        the kind (or a helper it calls) declares, made with no arguments at the session's first call and the
+        same object at every later one. A session starts empty (a run and each resume), so whatever a kind
+        keeps there (an interferometer datum, say) is known to be valid only for steps measured by this
+        process since then."""
+        ...
 
     def wait(self, seconds: float) -> None:
         """Sleep (an abort cuts it short)."""
@@ -207,6 +214,8 @@ class AnalysisContext:
     truth: TruthLog | None = None
     streams: Callable[[Sequence[int] | None], dict[int, Any]] | None = None
     """The run's stored pose streams by step (``RunStore.streams``), of the given steps or all."""
+    sessions: Sequence[SessionConditions] = ()
+    """The test conditions of each session of the run, oldest first (``RunStore.sessions``)."""
 
 
 @dataclass(frozen=True)

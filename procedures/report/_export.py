@@ -1,4 +1,8 @@
-"""A run's samples as CSV (SI columns, the unit in each name) and the whole run as JSON, as stored."""
+"""A run's samples as CSV (SI columns, the unit in each name) and the whole run as JSON.
+
+Both give the samples as they were committed (``Sample.as_stored``), whichever version committed them, so
+an export of a stored run never changes with the code that reads it.
+"""
 
 from __future__ import annotations
 
@@ -6,7 +10,6 @@ import csv
 import io
 import json
 from collections.abc import Sequence
-from dataclasses import asdict
 from typing import Any
 
 from procedures.store import Sample
@@ -25,20 +28,22 @@ def export_csv(samples: Sequence[Sample]) -> str:
     out = io.StringIO()
     writer = csv.writer(out)
     writer.writerow(SAMPLE_COLUMNS)
-    for s in samples:
-        commanded = (s.commanded or {}).get("tcp_pose") or [None] * 6
-        solved = (s.solved or {}).get("pose") or [None] * 6
-        corrected = (s.corrected or {}).get("pose") or [None] * 6
-        ref = s.reference or {}
-        writer.writerow([s.run_id, s.step_index, s.step_key, s.phase, s.label, int(s.ok), s.error or "",
-                         *commanded, *solved, *corrected, (s.solved or {}).get("residual_rms"), ref.get("value"),
-                         ref.get("interferometer_m"), ref.get("table_rad"), s.t_start, s.t_measured, s.t_committed])
+    for sample in samples:
+        s = sample.as_stored()
+        commanded = (s["commanded"] or {}).get("tcp_pose") or [None] * 6
+        solved = (s["solved"] or {}).get("pose") or [None] * 6
+        corrected = (s["corrected"] or {}).get("pose") or [None] * 6
+        ref = s["reference"] or {}
+        writer.writerow([s["run_id"], s["step_index"], s["step_key"], s["phase"], s["label"], int(s["ok"]),
+                         s["error"] or "", *commanded, *solved, *corrected, (s["solved"] or {}).get("residual_rms"),
+                         ref.get("value"), ref.get("interferometer_m"), ref.get("table_rad"), s["t_start"],
+                         s["t_measured"], s["t_committed"]])
     return out.getvalue()
 
 
 def export_json(run: dict[str, Any], samples: Sequence[Sample], events: Sequence[dict[str, Any]],
                 superseded: Sequence[Sample] = ()) -> str:
     """The run row, its samples, the failed samples measured again later, and its events as one JSON document."""
-    return json.dumps({"run": run, "samples": [asdict(s) for s in samples],
-                       "superseded_samples": [asdict(s) for s in superseded], "events": events},
+    return json.dumps({"run": run, "samples": [s.as_stored() for s in samples],
+                       "superseded_samples": [s.as_stored() for s in superseded], "events": events},
                       indent=1, default=str)

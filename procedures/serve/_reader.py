@@ -62,8 +62,7 @@ def run_summary(run: dict[str, Any]) -> dict[str, Any]:
 def point_of(sample: Sample) -> dict[str, Any]:
     """One committed sample as the live page plots it: the attained pose (corrected when the run
     corrects, else solved; m and rad, ``[x, y, z, a, b, c]`` in M) and its quality."""
-    best = sample.corrected or sample.solved or {}
-    meta = sample.meta or {}
+    meta = sample.meta
     return {
         "step": sample.step_index,
         "key": sample.step_key,
@@ -72,8 +71,8 @@ def point_of(sample: Sample) -> dict[str, Any]:
         "cycle": meta.get("cycle"),
         "ok": sample.ok,
         "error": sample.error,
-        "pose": best.get("pose"),
-        "residual_rms": (sample.solved or {}).get("residual_rms"),
+        "pose": None if sample.pose is None else list(sample.pose),
+        "residual_rms": None if sample.quality is None else sample.quality.residual_rms,
         "time": sample.t_committed,
     }
 
@@ -232,7 +231,7 @@ def progress_of(samples: list[Sample], total: int | None) -> dict[str, Any]:
     remaining = max((total or 0) - len(samples), 0)
     return {
         "phase": newest.phase if newest else None,
-        "cycle": (newest.meta or {}).get("cycle") if newest else None,
+        "cycle": newest.meta.get("cycle") if newest else None,
         "label": newest.label if newest else None,
         "failed": sum(1 for s in samples if not s.ok),
         "eta_s": pace * remaining if pace is not None else None,

@@ -193,6 +193,26 @@ CREATE TRIGGER streams_changed AFTER INSERT OR UPDATE OR DELETE ON streams
     FOR EACH STATEMENT EXECUTE FUNCTION store_changed();
 """
 
+# Issue 21: a session's test conditions (robot identity, payload, warm-up, operator) as a run-level record,
+# one row per session, committed in the same transaction as the session's first sample. Before, the record
+# rode in that sample's ``reference["session"]``; those samples are left as they were (nothing committed is
+# rewritten) and ``RunStore.sessions`` reads them too.
+def _v6(real: str) -> str:
+    return f"""
+CREATE TABLE IF NOT EXISTS session_conditions (
+    run_id TEXT NOT NULL,
+    started {real} NOT NULL,
+    conditions TEXT NOT NULL,
+    PRIMARY KEY (run_id, started)
+);
+"""
+
+
+_V6_POSTGRESQL = _v6("DOUBLE PRECISION") + """
+CREATE TRIGGER session_conditions_changed AFTER INSERT OR UPDATE OR DELETE ON session_conditions
+    FOR EACH STATEMENT EXECUTE FUNCTION store_changed();
+"""
+
 MIGRATIONS: tuple[Migration, ...] = (
     Migration(1, "runs, samples and events (the store as first written)", _v1("REAL"), _v1("DOUBLE PRECISION")),
     Migration(2, "superseded samples and run leases", _v2("REAL"), _v2("DOUBLE PRECISION")),
@@ -200,6 +220,8 @@ MIGRATIONS: tuple[Migration, ...] = (
     Migration(4, "a change counter for readers (PostgreSQL; SQLite has data_version)", "", _V4_POSTGRESQL),
     Migration(5, "the pose stream of each move measured in motion (one compressed row per move)", _v5("BLOB"),
               _V5_POSTGRESQL),
+    Migration(6, "the test conditions of each session of a run, a run-level record (no longer in a sample)",
+              _v6("REAL"), _V6_POSTGRESQL),
 )
 LATEST = MIGRATIONS[-1].version
 

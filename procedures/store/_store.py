@@ -27,7 +27,7 @@ import os
 import socket
 import time
 import uuid
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -37,13 +37,14 @@ import numpy as np
 from procedures.station import RunLocked, StateConflict
 from procedures.store._db import SQLITE_FILE, Database, DuplicateStep, StoreError, connect, store_location
 from procedures.store._run_state import RunState
+from procedures.store._samples import SAMPLE_FIELDS, Reference, Sample
+from procedures.store._sessions import SessionConditions
 
-__all__ = ["ROBOT_COLUMNS", "DuplicateStep", "Lease", "RunStore", "Sample", "StoreError", "StoredStream"]
+__all__ = ["ROBOT_COLUMNS", "DuplicateStep", "Lease", "RunStore", "StoreError", "StoredStream"]
 
 ROBOT_COLUMNS = ("robot_manufacturer", "robot_model", "robot_serial", "robot_controller_version")
 
-_SAMPLE_COLUMNS = ("run_id, step_index, step_key, phase, label, ok, error, commanded, solved, corrected, crosses, "
-                   "reference, meta, frames, t_start, t_measured, t_committed")
+_SAMPLE_COLUMNS = ", ".join(SAMPLE_FIELDS)
 
 FOREIGN_LEASE_TTL_S = 600.0
 """A lease held from another host counts as stale when not renewed for this long (the engine renews
@@ -96,29 +97,6 @@ def _default(value: Any) -> Any:
     if isinstance(value, Path):
         return str(value)
     raise TypeError(f"cannot store {type(value).__name__}")
-
-
-@dataclass
-class Sample:
-    """A sample as read back from the store (JSON fields decoded)."""
-
-    run_id: str
-    step_index: int
-    step_key: str
-    phase: str
-    label: str | None
-    ok: bool
-    error: str | None
-    commanded: dict | None
-    solved: dict | None
-    corrected: dict | None
-    crosses: dict | None
-    reference: dict | None
-    meta: dict | None
-    frames: list | None
-    t_start: float | None
-    t_measured: float | None
-    t_committed: float | None
 
 
 @dataclass(frozen=True)
@@ -397,43 +375,31 @@ class RunStore:
             "WHERE robot_serial IS NOT NULL GROUP BY robot_serial ORDER BY robot_serial")
 
     # --------------------------------------------------------------------------------- samples
-    def add_sample(
-        self,
-        run_id: str,
-        step_index: int,
-        step_key: str,
-        phase: str,
-        *,
-        label: str | None = None,
-        ok: bool = True,
-        error: str | None = None,
-        commanded: dict | None = None,
-        solved: dict | None = None,
-        corrected: dict | None = None,
-        crosses: dict | None = None,
-        reference: dict | None = None,
-        meta: dict | None = None,
-        frames: list | None = None,
-        t_start: float | None = None,
-        t_measured: float | None = None,
-        stream: StoredStream | None = None,
-    ) -> None:
-        """Insert and commit one sample (and its pose ``stream``, in the same transaction).
+    def add_sample(self, sample: Sample, *, stream: StoredStream | None = None,
+                   session: SessionConditions | None = None) -> None:
+        """Insert and commit one sample, with its pose ``stream`` and the ``session``'s test conditions (the
+        first sample of a session that records them) in the same transaction; ``t_committed`` is now.
 
         A step stored as *failed* is measured again by a later session: its failed row moves to
         ``superseded_samples`` in the same transaction (a stream it had is replaced). Raises
         ``DuplicateStep`` if the step is already stored as measured (a resumed run must never measure
         such a step again).
         """
-        values = (run_id, step_index, step_key, phase, label, int(ok), error, _dumps(commanded), _dumps(solved),
-                  _dumps(corrected), _dumps(crosses), _dumps(reference), _dumps(meta), _dumps(frames), t_start,
-                  t_measured, time.time())
+        row = {**sample.to_row(), "ok": int(sample.ok), "t_committed": time.time()}
+        if sample.reference == Reference():
+            row["reference"] = None  # nothing read beside the pose
+        values = tuple(_dumps(row[key]) if key in _JSON_SAMPLE else row[key] for key in SAMPLE_FIELDS)
+        run_id, step_index = sample.run_id, sample.step_index
         with self._db.transaction():
             self._db.execute(
                 f"INSERT INTO superseded_samples ({_SAMPLE_COLUMNS}, superseded) SELECT {_SAMPLE_COLUMNS}, ? "
                 "FROM samples WHERE run_id = ? AND step_index = ? AND ok = 0", (time.time(), run_id, step_index))
             self._db.execute("DELETE FROM samples WHERE run_id = ? AND step_index = ? AND ok = 0", (run_id, step_index))
-            self._db.execute(f"INSERT INTO samples ({_SAMPLE_COLUMNS}) VALUES ({', '.join('?' * 17)})", values)
+            self._db.execute(f"INSERT INTO samples ({_SAMPLE_COLUMNS}) VALUES ({', '.join('?' * len(values))})",
+                             values)
+            if session is not None:
+                self._db.execute("INSERT INTO session_conditions (run_id, started, conditions) VALUES (?,?,?)",
+                                 (run_id, session.started, _dumps(session.to_stored())))
             if stream is not None:
                 self._db.execute("DELETE FROM streams WHERE run_id = ? AND step_index = ?", (run_id, step_index))
                 self._db.execute("INSERT INTO streams (run_id, step_index, format, samples, columns, meta, data) "
@@ -483,6 +449,18 @@ class RunStore:
         return self._decode(self._db.rows(f"SELECT {_SAMPLE_COLUMNS} FROM samples WHERE run_id = ? "
                                           "ORDER BY step_index", (run_id,)))
 
+    def sessions(self, run_id: str) -> list[SessionConditions]:
+        """The test conditions of each session of the run, oldest first: the run-level records (schema version
+        6 on), and those earlier versions kept in a session's first sample (``reference["session"]``)."""
+        found = [SessionConditions.from_stored(json.loads(row["conditions"])) for row in self._db.rows(
+            "SELECT conditions FROM session_conditions WHERE run_id = ? ORDER BY started", (run_id,))]
+        for row in self._db.rows("SELECT reference FROM samples WHERE run_id = ? AND reference LIKE ? "
+                                 "ORDER BY step_index", (run_id, '%"session"%')):
+            legacy = (json.loads(row["reference"]) or {}).get("session")
+            if isinstance(legacy, Mapping):
+                found.append(SessionConditions.from_stored(legacy))
+        return sorted(found, key=lambda s: s.started)
+
     @staticmethod
     def _decode(rows: list[dict[str, Any]]) -> list[Sample]:
         samples = []
@@ -490,7 +468,7 @@ class RunStore:
             for key in _JSON_SAMPLE:
                 data[key] = json.loads(data[key]) if data[key] else None
             data["ok"] = bool(data["ok"])
-            samples.append(Sample(**data))
+            samples.append(Sample.from_row(data))
         return samples
 
     # ---------------------------------------------------------------------------------- events

@@ -37,7 +37,7 @@ from procedures.kinds.calibration._common import (
     line_points,
 )
 from procedures.station import ANGLE_COMPONENT, StationFile
-from procedures.store import Sample
+from procedures.store import Reference, Sample
 
 
 def _paper_group_offsets() -> list[float]:
@@ -130,7 +130,8 @@ class AngleCalibrationKind:
         # Only the angle about the table's axis is known: the OPR's position turns with the table.
         expected = {COMPONENTS.index(ANGLE_COMPONENT[step.meta["axis"]]): table_rad}
         return Reading(pose=ctx.measure_pose(step, expected=expected),
-                       reference={"table_rad": table_rad, "value": table_rad, "approach": step.meta.get("approach")})
+                       reference=Reference(value=table_rad, approach=step.meta.get("approach"),
+                                           readings={"table_rad": table_rad}))
 
     def analyse(self, samples: Sequence[Sample], params: AngleParameters, ctx: AnalysisContext) -> Analysis:
         return analyse_calibration(samples, ctx, kind="angle", component_of_axis=ANGLE_COMPONENT,

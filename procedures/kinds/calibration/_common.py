@@ -127,26 +127,27 @@ def analyse_calibration(samples: Sequence[Sample], ctx: AnalysisContext, *, kind
     wavelength_compensation : the displacement readings were compensated for the air
     """
     data: dict[str, list[dict[str, Any]]] = {}
-    environment: list[dict[str, Any]] = []
+    environment: list[Mapping[str, Any]] = []
     factors: list[float] = []
     lines: dict[str, list[tuple[Any, list[float]]]] = {}
     for sample in samples:
-        if not sample.ok or sample.phase != "calibration" or sample.meta is None or sample.solved is None:
+        if not sample.ok or sample.phase != "calibration" or not sample.meta or sample.solved is None:
             continue
         meta = sample.meta
         lines.setdefault(meta["axis"], []).append(((meta["group"], meta["repeat"], meta.get("approach")),
-                                                   sample.solved["pose"]))
+                                                   list(sample.solved.pose)))
         component = component_of_axis[sample.meta["axis"]]
         index = COMPONENTS.index(component)
-        reference = sample.reference or {}
+        reference = sample.reference
         entry = {"group": sample.meta["group"], "repeat": sample.meta["repeat"], "point": sample.meta["point"],
-                 "nominal": sample.meta["nominal"], "measured": sample.solved["pose"][index],
-                 "reference": reference["value"], "datum_set_at": reference.get("datum_set_at"),
+                 "nominal": sample.meta["nominal"], "measured": sample.solved.pose[index],
+                 "reference": reference.value, "datum_set_at": reference.readings.get("datum_set_at"),
                  "direction": sample.meta.get("approach")}
-        if reference.get("environment"):
-            environment.append(reference["environment"])
-        if reference.get("wavelength_compensation"):
-            factors.append(float(reference["wavelength_compensation"]["factor"]))
+        if reference.environment:
+            environment.append(reference.environment)
+        compensation = reference.readings.get("wavelength_compensation")
+        if compensation:
+            factors.append(float(compensation["factor"]))
         if ctx.truth is not None and sample.t_measured is not None:
             state = ctx.truth.at(sample.t_measured)
             if state is not None:

@@ -6,10 +6,10 @@ Writes a calibration record with one compensation curve per axis (components x, 
 **The datum.** A reading means something only relative to the datum set by ``zero()`` at the
 group's first point, and the interferometer loses it whenever its beam breaks or the head is
 re-aimed (which every resume does). So a datum is trusted only within the session that set it
-(``ctx.session``). A step whose group has no datum in this session — a resumed run, a failed pose
+(``DisplacementSession``). A step whose group has no datum in this session — a resumed run, a failed pose
 measured again, or a ``DatumLost``/``BeamInterrupted`` while reading — **re-establishes** it: the
 robot returns to the group's first point, the interferometer is zeroed there, the robot goes back
-to the step. Every sample records its datum (``reference.datum_set_at``, ``datum_reestablished``)
+to the step. Every sample records its datum (its reference's ``datum_set_at`` and ``datum_reestablished``)
 and the run log says when one was re-established. A ``FeedGap`` or a lost feed connection (the
 driver reconnects by itself) is read again after a back-off: the head keeps its count meanwhile, and
 the driver says ``DatumLost`` if it did not. The robot never returns to a point exactly
@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import numpy as np
@@ -52,7 +52,7 @@ from procedures.kinds.calibration._common import (
     line_points,
 )
 from procedures.station import StationFile, Vec3, translated_in_frame
-from procedures.store import Sample
+from procedures.store import Reference, Sample, as_pose
 
 AXIS_INDEX = {"x": 0, "y": 1, "z": 2}
 READ_ATTEMPTS = 3  # interferometer readings per step (a lost datum or a feed gap in between is repaired)
@@ -65,6 +65,13 @@ class Datum:
 
     set_at: float
     reestablished: bool
+
+
+@dataclass
+class DisplacementSession:
+    """What one session of a displacement calibration knows: the datum of each (axis, group) it set."""
+
+    datums: dict[tuple[str, int], Datum] = field(default_factory=dict)
 
 
 def _paper_group_offsets() -> list[list[float]]:
@@ -199,19 +206,19 @@ class DisplacementCalibrationKind:
                                   f"the air read cannot be compensated for: {exc}") from None
             displacement, wavelength = compensation.apply(reading), compensation.as_record()
         # The reference is where the group's line starts (nominal) plus the displacement since its zero.
-        reference = {"interferometer_raw_m": reading, "interferometer_m": displacement,
-                     "value": step.meta["group_start"] + displacement, "wavelength_compensation": wavelength,
-                     "environment": None if environment is None else environment_record(environment),
-                     "approach": step.meta.get("approach"),
-                     "robot_tcp_pose": [float(v) for v in ctx.robot.tcp_pose()],
-                     "datum_set_at": datum.set_at, "datum_reestablished": datum.reestablished}
+        reference = Reference(value=step.meta["group_start"] + displacement, approach=step.meta.get("approach"),
+                              environment=None if environment is None else environment_record(environment),
+                              robot_tcp_pose=as_pose(ctx.robot.tcp_pose()),
+                              readings={"interferometer_raw_m": reading, "interferometer_m": displacement,
+                                        "wavelength_compensation": wavelength, "datum_set_at": datum.set_at,
+                                        "datum_reestablished": datum.reestablished})
         expected = robot_pose_in_m(ctx.station.frames.reference_tcp_pose, step.robot_target())
         return Reading(pose=ctx.measure_pose(step, expected=dict(enumerate(expected))), reference=reference)
 
     def _datum(self, step: Step, params: DisplacementParameters, ctx: StepContext) -> Datum:
         """The datum of the step's group in this session: set here at the group's first point, kept
         from an earlier step of this session, or re-established (see the module docstring)."""
-        datums: dict[tuple[str, int], Datum] = ctx.session.setdefault("datums", {})
+        datums = ctx.session_state(DisplacementSession).datums
         key = (step.meta["axis"], step.meta["group"])
         if step.meta.get("zero_interferometer"):
             datums[key] = Datum(self._zero(params, ctx), reestablished=False)
@@ -228,7 +235,7 @@ class DisplacementCalibrationKind:
         ctx.move_robot(translated_in_frame(step.robot_target(), along).tolist())
         ctx.settle()
         datum = Datum(self._zero(params, ctx), reestablished=True)
-        ctx.session.setdefault("datums", {})[(step.meta["axis"], step.meta["group"])] = datum
+        ctx.session_state(DisplacementSession).datums[(step.meta["axis"], step.meta["group"])] = datum
         ctx.log("datum", f"{step.meta['axis']} group {step.meta['group']}: datum re-established at the group's "
                          f"first point before {step.key}: {why}")
         note_line_position(ctx, step, step.meta["group_start"])

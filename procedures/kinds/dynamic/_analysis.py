@@ -195,8 +195,8 @@ def fitted_frame(ctx: AnalysisContext, samples: Sequence[Sample], truths: Mappin
     mine = [s for s in samples if s.phase == "transform" and s.ok]
     if len(mine) < 3:
         return np.eye(4), np.eye(4), {"fitted": False}
-    source = np.array([tcp_in_m(reference, (s.commanded or {})["tcp_pose"])[:3, 3] for s in mine])
-    target = np.array([np.asarray((s.corrected or s.solved or {})["pose"])[:3] for s in mine])
+    source = np.array([tcp_in_m(reference, s.robot_target())[:3, 3] for s in mine])
+    target = np.array([np.asarray(s.measured_pose())[:3] for s in mine])
     rotation, translation, rms = ctx.science.fit_rigid_transform(source, target)
     fitted = np.eye(4)
     fitted[:3, :3], fitted[:3, 3] = rotation, translation

@@ -16,6 +16,7 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import Field
 
+from procedures.kinds._conditions import SessionRecord
 from procedures.kinds._parameters import ProcedureBase
 from procedures.kinds._protocol import (
     Analysis,
@@ -45,6 +46,7 @@ from procedures.kinds.dynamic._analysis import (
 from procedures.kinds.dynamic._plan import (
     CYCLE_ORDER,
     DynamicParameters,
+    DynamicSession,
     approach_direction,
     cube_point,
     go_to,
@@ -57,7 +59,7 @@ from procedures.kinds.dynamic._plan import (
 )
 from procedures.kinds.dynamic._truth import truths_of
 from procedures.station import StationFile, ur_to_matrix
-from procedures.store import Sample
+from procedures.store import Reference, Sample, as_pose
 
 LINE = ("P2", "P3", "P4")  # the corner at P3: 90° in the diagonal plane
 
@@ -130,10 +132,9 @@ class Iso9283PathKind:
     def measure(self, step: Step, params: PathParameters, ctx: StepContext) -> Reading:
         if step.phase == "transform":
             ctx.settle()
-            reference: dict[str, Any] = {"robot_tcp_pose": [float(v) for v in ctx.robot.tcp_pose()]}
-            if ctx.session.pop("conditions_pending", False):
-                reference["session"] = ctx.session["conditions"]
-            return Reading(pose=ctx.measure_pose(step), reference=reference)
+            reference = Reference(robot_tcp_pose=as_pose(ctx.robot.tcp_pose()))
+            return Reading(pose=ctx.measure_pose(step), reference=reference,
+                           session=ctx.session_state(SessionRecord).take())
         ctx.wait(params.rest_s)
         speed, acceleration = motion_of(ctx.station, params, step.meta["speed_percent"])
         vias = [np.asarray(p, dtype=float) for p in step.via[1:]]
@@ -146,11 +147,11 @@ class Iso9283PathKind:
             def motion() -> None:
                 ctx.robot.move_circular(np.array([vias[0], vias[2]]), np.array([vias[1], target]), speed,
                                         acceleration, blend_radius=0.0, timeout=params.move_timeout_s)
-        ctx.session["last_tcp"] = None
+        ctx.session_state(DynamicSession).last_tcp = None
         record = ctx.stream_motion(step, motion, rate_hz=params.rate_hz, exposure_s=params.exposure_s,
                                    hold_s=params.hold_s, target_in_m=step.meta["position_in_m"],
                                    direction=approach_direction(step))
-        ctx.session["last_tcp"] = list(step.robot_target())
+        ctx.session_state(DynamicSession).last_tcp = list(step.robot_target())
         simulation = ctx.station.simulation
         record.meta["truth_log"] = simulation.truth_log if simulation is not None else None
         record.meta.update({"speed": speed, "acceleration": acceleration})

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
@@ -17,11 +18,12 @@ from pydantic import Field
 
 from instrument.iso9283 import iso_cube_points
 from procedures.kinds._approach import pose_directions
-from procedures.kinds._conditions import operator_of, robot_identity, set_payload
+from procedures.kinds._conditions import SessionRecord, operator_of, robot_identity, set_payload
 from procedures.kinds._parameters import MotionParameters
 from procedures.kinds._protocol import PoseReading, Reading, Step, StepContext
 from procedures.kinds._setups import OprOnRobot
 from procedures.station import StationFile, Vec3, translated_in_frame
+from procedures.store import CorrectedPose, PoseQuality, Reference, SessionConditions, SolvedPose, as_pose
 
 CYCLE_ORDER = ("P1", "P5", "P4", "P3", "P2")  # ISO 9283's cycle; each pose is approached from the one before it
 Point = Sequence[float] | np.ndarray  # a position in M (m)
@@ -110,22 +112,33 @@ def robot_step(index: int, key: str, phase: str, station: StationFile, target_in
                       "start_in_m": None if start_in_m is None else [float(v) for v in start_in_m]})
 
 
+@dataclass
+class DynamicSession:
+    """What one session of a run measured in motion remembers: the TCP pose the robot was last sent to
+    (None: unknown, as after a measured motion, whose end the next step does not assume)."""
+
+    last_tcp: list[float] | None = None
+
+
 def start_session(ctx: StepContext, params: DynamicParameters) -> None:
     """Identity, payload and operator at the start of this session (recorded with its first sample)."""
-    if "conditions" in ctx.session:
+    record = ctx.session_state(SessionRecord)
+    if record.conditions is not None:
         return
-    ctx.session["conditions"] = {"started": time.time(), "robot": robot_identity(ctx),
-                                 "payload": set_payload(ctx, params.payload_mass_kg, params.payload_cog_m),
-                                 "warm_up": {"mode": "declared", "duration_s": 0.0},
-                                 "operator": operator_of(params.operator)}
-    ctx.session["conditions_pending"] = True
+    started = time.time()
+    robot = robot_identity(ctx)
+    payload = set_payload(ctx, params.payload_mass_kg, params.payload_cog_m)
+    record.start(SessionConditions(started=started, robot=robot, payload=payload,
+                                   warm_up={"mode": "declared", "duration_s": 0.0},
+                                   operator=operator_of(params.operator)))
 
 
 def go_to(ctx: StepContext, tcp_pose: Sequence[float]) -> None:
     """Move (at the run's repositioning speed) unless the robot is already there."""
-    if ctx.session.get("last_tcp") != list(tcp_pose):
+    state = ctx.session_state(DynamicSession)
+    if state.last_tcp != list(tcp_pose):
         ctx.move_robot(tcp_pose)
-        ctx.session["last_tcp"] = list(tcp_pose)
+        state.last_tcp = list(tcp_pose)
 
 
 def approach_direction(step: Step) -> dict[str, int | None]:
@@ -140,26 +153,24 @@ def stream_reading(step: Step, params: DynamicParameters, ctx: StepContext, reco
                    figures: dict[str, Any], error: str | None) -> Reading:
     """The sample of a measured move: its settled pose (the mean of the stream's last fifth), the move's
     figures, the stream itself (stored with the sample); failed when ``error``."""
-    reference: dict[str, Any] = {"robot_tcp_pose": [float(v) for v in ctx.robot.tcp_pose()],
-                                 "approach": approach_direction(step), "stream": {
-                                     "poses": len(record), "triggers": record.meta.get("triggers"),
-                                     "dropped": record.dropped, "drop_reasons": record.meta.get("drop_reasons"),
-                                     "t_signal": record.meta.get("t_signal"), "clock": record.meta.get("clock")},
-                                 "dynamic": figures}
-    if ctx.session.pop("conditions_pending", False):
-        reference["session"] = ctx.session["conditions"]
+    summary = {"poses": len(record), "triggers": record.meta.get("triggers"), "dropped": record.dropped,
+               "drop_reasons": record.meta.get("drop_reasons"), "t_signal": record.meta.get("t_signal"),
+               "clock": record.meta.get("clock")}
+    reference = Reference(robot_tcp_pose=as_pose(ctx.robot.tcp_pose()), approach=approach_direction(step),
+                          readings={"stream": summary, "dynamic": figures})
+    session = ctx.session_state(SessionRecord).take()
     if error is not None:
-        return Reading(pose=PoseReading(ok=False, error=error, attempts=1), reference=reference, stream=record)
+        return Reading(pose=PoseReading(ok=False, error=error, attempts=1), reference=reference, stream=record,
+                       session=session)
     tail = max(3, len(record) // 5)
-    solved = {"pose": record.raw[-tail:].mean(axis=0).tolist(), "pose_std": record.raw[-tail:].std(axis=0).tolist(),
-              "residual_rms": float(np.mean(record.residual_rms[-tail:])), "per_frame": None,
-              "components": ["x", "y", "z", "a", "b", "c"]}
+    quality = PoseQuality(residual_rms=float(np.mean(record.residual_rms[-tail:])),
+                          pose_std=as_pose(record.raw[-tail:].std(axis=0)), attempts=1)
+    solved = SolvedPose(pose=as_pose(record.raw[-tail:].mean(axis=0)), quality=quality)
     corrected = None
     if params.apply_compensation and not np.allclose(record.pose, record.raw):
-        corrected = {"pose": record.pose[-tail:].mean(axis=0).tolist(), "flags": [], "records": [],
-                     "direction": approach_direction(step)}
+        corrected = CorrectedPose(pose=as_pose(record.pose[-tail:].mean(axis=0)), direction=approach_direction(step))
     return Reading(pose=PoseReading(ok=True, solved=solved, corrected=corrected, t_measured=time.time(), attempts=1),
-                   reference=reference, stream=record)
+                   reference=reference, stream=record, session=session)
 
 
 def stream_problem(record: Any, params: DynamicParameters) -> str | None:

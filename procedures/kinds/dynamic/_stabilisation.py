@@ -38,6 +38,7 @@ from procedures.kinds.dynamic._analysis import (
 from procedures.kinds.dynamic._plan import (
     CYCLE_ORDER,
     DynamicParameters,
+    DynamicSession,
     approach_direction,
     cube_point,
     go_to,
@@ -115,11 +116,12 @@ class Iso9283StabilisationKind:
         def motion() -> None:
             ctx.robot.move_linear(target, speed, acceleration, timeout=params.move_timeout_s)
 
-        ctx.session["last_tcp"] = None  # wherever the motion ends, the next step moves from where it is
+        # wherever the motion ends, the next step moves from where it is
+        ctx.session_state(DynamicSession).last_tcp = None
         record = ctx.stream_motion(step, motion, rate_hz=params.rate_hz, exposure_s=params.exposure_s,
                                    hold_s=params.window_s, target_in_m=step.meta["position_in_m"],
                                    direction=approach_direction(step))
-        ctx.session["last_tcp"] = list(step.robot_target())
+        ctx.session_state(DynamicSession).last_tcp = list(step.robot_target())
         simulation = ctx.station.simulation
         record.meta["truth_log"] = simulation.truth_log if simulation is not None else None
         record.meta.update({"speed": speed, "acceleration": acceleration})

@@ -17,7 +17,7 @@ import numpy as np
 
 from instrument import COMPONENTS, __version__
 from instrument.uncertainty import CoverageCase, IsoRun, UncertaintyBudget, UncertaintyError, iso_uncertainty
-from procedures.kinds._conditions import local_time, sessions_of
+from procedures.kinds._conditions import local_time
 from procedures.kinds._environment import environment_summary
 from procedures.kinds._protocol import RESULTS_VERSION, AnalysisContext
 from procedures.kinds.iso._budget import BudgetUnavailable, iso_budget, squareness_terms
@@ -33,12 +33,12 @@ SEED = 0  # the Monte Carlo's: the same data give the same U
 
 
 def _measured(sample: Sample) -> np.ndarray:
-    best = sample.corrected or sample.solved or {}
-    return np.asarray(best["pose"], dtype=float)
+    """The step's best pose (corrected when a record was applied, else as solved)."""
+    return np.asarray(sample.measured_pose(), dtype=float)
 
 
 def _commanded_tcp(sample: Sample) -> list[float]:
-    return (sample.commanded or {})["tcp_pose"]
+    return list(sample.robot_target())
 
 
 def _true_opr(ctx: AnalysisContext, sample: Sample) -> np.ndarray | None:
@@ -65,7 +65,7 @@ def _approach_of(samples: Sequence[Sample]) -> tuple[dict[str, int | None], bool
     """The direction each component of a point was approached from (None if it varied or did not move)."""
     seen: dict[str, set[int | None]] = {c: set() for c in COMPONENTS}
     for s in samples:
-        approach = (s.reference or {}).get("approach") or {}
+        approach = s.reference.approach if isinstance(s.reference.approach, Mapping) else {}
         for c in COMPONENTS:
             seen[c].add(approach.get(c))
     varied = any(len(v) > 1 for v in seen.values())
@@ -119,7 +119,7 @@ def analyse_iso(samples: Sequence[Sample], ctx: AnalysisContext, params: IsoPara
         entry: dict[str, Any] = {
             "n": len(mine), "stats": ctx.science.iso_statistics(poses, commanded), "poses": poses.tolist(),
             "commanded": commanded.tolist(), "commanded_in_base": list(_commanded_tcp(mine[0])),
-            "cycles": [(s.meta or {}).get("cycle") for s in mine], "t_measured": [s.t_measured for s in mine],
+            "cycles": [s.meta.get("cycle") for s in mine], "t_measured": [s.t_measured for s in mine],
             "approach": approach,
         }
         true_opr = [_true_opr(ctx, s) for s in mine]
@@ -132,13 +132,12 @@ def analyse_iso(samples: Sequence[Sample], ctx: AnalysisContext, params: IsoPara
         points[label] = entry
         measured_tools[label], commanded_tools[label] = poses, commanded
         opr_barycentres[label] = opr.mean(axis=0)
-        per_frame += [s.solved["per_frame"] for s in mine if s.solved and s.solved.get("per_frame")]
+        per_frame += [[list(p) for p in s.solved.per_frame] for s in mine if s.solved and s.solved.per_frame]
 
     applied_infos = [_info(c) for c in ctx.compensators]
     infos = applied_infos or _station_record_infos(ctx, notes)
     applied = {c for info in applied_infos for c in info.get("components", [])}
-    environment = environment_summary([s.reference["environment"] for s in samples
-                                       if s.ok and s.reference and s.reference.get("environment")])
+    environment = environment_summary([s.reference.environment for s in samples if s.ok and s.reference.environment])
     run_air = None if environment is None else environment["mean"].get("air_temperature_k")
 
     uncertainty: dict[str, Any]
@@ -177,7 +176,7 @@ def analyse_iso(samples: Sequence[Sample], ctx: AnalysisContext, params: IsoPara
             uncertainty = {"evaluated": False, "reason": str(exc)}
             figures = _figures_without_uncertainty(points)
 
-    sessions = sessions_of([s.reference for s in samples])
+    sessions = [s.to_stored() for s in ctx.sessions]
     first = min((s.t_measured for s in samples if s.t_measured is not None), default=None)
     conditions = test_conditions(params, ctx.station, points, sessions, environment, infos, applied_infos,
                                  date=local_time(first), software_version=__version__)

@@ -10,10 +10,11 @@ from __future__ import annotations
 
 import time
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 from procedures.kinds._approach import pose_directions, robot_pose_in_m
-from procedures.kinds._conditions import operator_of, robot_identity, set_payload, warm_up
+from procedures.kinds._conditions import SessionRecord, operator_of, robot_identity, set_payload, warm_up
 from procedures.kinds._environment import environment_record, read_environment
 from procedures.kinds._protocol import (
     Analysis,
@@ -28,7 +29,16 @@ from procedures.kinds._setups import OprOnRobot
 from procedures.kinds.iso._analysis import analyse_iso
 from procedures.kinds.iso._parameters import Iso9283Repeatability, IsoParameters, cube_path
 from procedures.station import StationFile
-from procedures.store import Sample
+from procedures.store import Reference, Sample, SessionConditions, as_pose
+
+
+@dataclass
+class IsoSession:
+    """What one session of an ISO run remembers between steps: the last commanded TCP pose, and the
+    direction the step being measured was approached from."""
+
+    last_tcp: list[float] | None = None
+    approach: dict[str, int | None] | None = None
 
 
 class Iso9283RepeatabilityKind:
@@ -65,40 +75,39 @@ class Iso9283RepeatabilityKind:
         return params.apply_compensation
 
     def move(self, step: Step, params: IsoParameters, ctx: StepContext) -> None:
-        if "conditions" not in ctx.session:
-            self._start_session(step, params, ctx)
+        record = ctx.session_state(SessionRecord)
+        if record.conditions is None:
+            record.start(self._conditions(params, ctx))
+        state = ctx.session_state(IsoSession)
         reference = ctx.station.frames.reference_tcp_pose
         target = step.robot_target()
-        previous = ctx.session.get("last_tcp")
+        previous = state.last_tcp
         if previous is None:
             previous = [float(v) for v in ctx.robot.tcp_pose()]
-        ctx.session["approach"] = pose_directions(robot_pose_in_m(reference, previous),
-                                                  robot_pose_in_m(reference, target))
+        state.approach = pose_directions(robot_pose_in_m(reference, previous), robot_pose_in_m(reference, target))
         ctx.move_robot(target)
-        ctx.session["last_tcp"] = list(target)
+        state.last_tcp = list(target)
 
-    def _start_session(self, step: Step, params: IsoParameters, ctx: StepContext) -> None:
-        """Identity, payload, warm-up, operator and the air at the start of this session."""
+    def _conditions(self, params: IsoParameters, ctx: StepContext) -> SessionConditions:
+        """Identity, payload, warm-up and operator at the start of this session."""
         started = time.time()
-        conditions: dict[str, Any] = {"started": started, "robot": robot_identity(ctx),
-                                      "payload": set_payload(ctx, params.payload_mass_kg, params.payload_cog_m)}
+        robot = robot_identity(ctx)
+        payload = set_payload(ctx, params.payload_mass_kg, params.payload_cog_m)
         path = [tcp for _, _, tcp in cube_path(params, ctx.station)]
-        conditions["warm_up"] = warm_up(ctx, params.warm_up, params.warm_up_s, path)
-        conditions["operator"] = operator_of(params.operator)
-        ctx.session["conditions"] = conditions
-        ctx.session["conditions_pending"] = True
+        return SessionConditions(started=started, robot=robot, payload=payload,
+                                 warm_up=warm_up(ctx, params.warm_up, params.warm_up_s, path),
+                                 operator=operator_of(params.operator))
 
     def measure(self, step: Step, params: IsoParameters, ctx: StepContext) -> Reading:
         ctx.settle()
-        approach = ctx.session.get("approach")
-        reference: dict[str, Any] = {"robot_tcp_pose": [float(v) for v in ctx.robot.tcp_pose()], "approach": approach}
+        approach = ctx.session_state(IsoSession).approach
+        environment = None
         if step.meta.get("environment"):
-            reference["environment"] = environment_record(read_environment(ctx, params, step.key))
-        if ctx.session.pop("conditions_pending", False):
-            reference["session"] = ctx.session["conditions"]
+            environment = environment_record(read_environment(ctx, params, step.key))
+        reference = Reference(robot_tcp_pose=as_pose(ctx.robot.tcp_pose()), approach=approach, environment=environment)
         expected = robot_pose_in_m(ctx.station.frames.reference_tcp_pose, step.robot_target())
         return Reading(pose=ctx.measure_pose(step, direction=approach, expected=dict(enumerate(expected))),
-                       reference=reference)
+                       reference=reference, session=ctx.session_state(SessionRecord).take())
 
     def analyse(self, samples: Sequence[Sample], params: IsoParameters, ctx: AnalysisContext) -> Analysis:
         return Analysis(results=analyse_iso(samples, ctx, params))
