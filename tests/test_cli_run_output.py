@@ -155,6 +155,8 @@ def test_set_overrides_are_validated_stored_and_shown(tmp_path):
     assert run["total_steps"] == 5 + 2 * 5
     assert run["procedure_text"].startswith("# iso9283_repeatability.yaml run with --set cycles=2 "
                                             "--set save_frames=never\n")
+    report = (tmp_path / "runs" / run["id"] / "report.html").read_text(encoding="utf-8")
+    assert "<h1>ISO 9283 pose repeatability and accuracy — 2 cycles</h1>" in report  # the kind's title, as run
     for bad, expected in (
         ["cycles=thirty"], "--set cycles=thirty: parameters.cycles: input should be a valid integer",
     ), (["cycle=3"], "--set cycle=3: parameters.cycle: unknown field"), (["cycles"], "--set cycles: expected "

@@ -1,5 +1,6 @@
 """The run store: durable samples, no duplicates, and a kill -9 in the middle of a run loses nothing."""
 
+import json
 import os
 import signal
 import sqlite3
@@ -10,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+from procedures.cli import main
 from procedures.engine import open_engine
 from procedures.store import (
     Commanded,
@@ -118,7 +120,7 @@ def test_typed_blocks_round_trip_through_their_stored_form():
     assert Reference.from_stored({"approach": {"x": 1}, "session": {"started": 1.0}}).readings == {}
 
 
-def test_session_conditions_are_a_run_level_record_written_once_per_session(tmp_path):
+def test_session_conditions_are_a_run_level_record_written_once_per_session(tmp_path, capsys):
     """A session's test conditions go to their own table with the session's first sample, never into a
     sample; a resume adds its own; the analysis sees both (docs/results.md, test_conditions.sessions)."""
     truth = tmp_path / "truth.jsonl"
@@ -151,3 +153,5 @@ def test_session_conditions_are_a_run_level_record_written_once_per_session(tmp_
         assert db.execute("SELECT COUNT(*) FROM session_conditions WHERE run_id = ?", (run_id,)).fetchone() == (2,)
         references = [row[0] for row in db.execute("SELECT reference FROM samples WHERE run_id = ?", (run_id,))]
     assert references and not any('"session"' in (reference or "") for reference in references)
+    assert main(["export", run_id, "--json", "--runs-dir", str(tmp_path / "runs")]) == 0
+    assert json.loads(capsys.readouterr().out)["sessions"] == [s.to_stored() for s in sessions]

@@ -1,7 +1,8 @@
 """``instrument export RUN --csv|--json``: the run's samples (CSV) or everything (JSON).
 
-The JSON holds the run row, its samples, the failed samples measured again later and its events,
-and ``results``: every figure as ``{value, expanded_uncertainty, coverage_factor, confidence_interval,
+The JSON holds the run row, its samples, the failed samples measured again later and its events (all
+as stored), ``sessions`` (each session's test conditions, for runs stored since schema version 6), and
+``results``: every figure as ``{value, expanded_uncertainty, coverage_factor, confidence_interval,
 true, unit, budget}`` (SI), the test conditions and the deviations (docs/results.md).
 """
 
@@ -41,6 +42,9 @@ def run(args) -> int:
         else:
             document = json.loads(export_json(r, samples, store.events(r["id"]), store.superseded_samples(r["id"])))
             document["results"] = normalised_results(r)
+            recorded = store.sessions(r["id"], earlier=False)
+            if recorded:  # the run-level test conditions; runs stored before them carry theirs in their samples
+                document["sessions"] = [session.to_stored() for session in recorded]
             if args.streams:
                 from procedures.kinds import StreamRecord
 

@@ -449,16 +449,18 @@ class RunStore:
         return self._decode(self._db.rows(f"SELECT {_SAMPLE_COLUMNS} FROM samples WHERE run_id = ? "
                                           "ORDER BY step_index", (run_id,)))
 
-    def sessions(self, run_id: str) -> list[SessionConditions]:
+    def sessions(self, run_id: str, *, earlier: bool = True) -> list[SessionConditions]:
         """The test conditions of each session of the run, oldest first: the run-level records (schema version
-        6 on), and those earlier versions kept in a session's first sample (``reference["session"]``)."""
+        6 on) and, with ``earlier``, those that earlier versions kept in a session's first sample
+        (``reference["session"]``)."""
         found = [SessionConditions.from_stored(json.loads(row["conditions"])) for row in self._db.rows(
             "SELECT conditions FROM session_conditions WHERE run_id = ? ORDER BY started", (run_id,))]
-        for row in self._db.rows("SELECT reference FROM samples WHERE run_id = ? AND reference LIKE ? "
-                                 "ORDER BY step_index", (run_id, '%"session"%')):
-            legacy = (json.loads(row["reference"]) or {}).get("session")
-            if isinstance(legacy, Mapping):
-                found.append(SessionConditions.from_stored(legacy))
+        if earlier:
+            for row in self._db.rows("SELECT reference FROM samples WHERE run_id = ? AND reference LIKE ? "
+                                     "ORDER BY step_index", (run_id, '%"session"%')):
+                legacy = (json.loads(row["reference"]) or {}).get("session")
+                if isinstance(legacy, Mapping):
+                    found.append(SessionConditions.from_stored(legacy))
         return sorted(found, key=lambda s: s.started)
 
     @staticmethod
