@@ -80,6 +80,18 @@ def _event_stream(events: AsyncIterator[str]) -> StreamingResponse:
                              headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"})
 
 
+async def _changes_of(watcher: StoreWatcher) -> AsyncIterator[int | None]:
+    """The store's version each time it changes; None after every ``KEEP_ALIVE_S`` without a change."""
+    seen = -2
+    while True:
+        version = await watcher.wait(seen, KEEP_ALIVE_S)
+        if version == seen:
+            yield None
+            continue
+        seen = version
+        yield version
+
+
 def _watcher_of(request: Request) -> StoreWatcher:
     watcher: StoreWatcher = request.app.state.watcher
     return watcher
@@ -94,14 +106,8 @@ async def changes(request: Request) -> StreamingResponse:
     watcher = _watcher_of(request)
 
     async def stream() -> AsyncIterator[str]:
-        seen = -2
-        while True:
-            version = await watcher.wait(seen, KEEP_ALIVE_S)
-            if version == seen:
-                yield ": keep-alive\n\n"
-                continue
-            seen = version
-            yield _sse("version", {"version": version})
+        async for version in _changes_of(watcher):
+            yield ": keep-alive\n\n" if version is None else _sse("version", {"version": version})
     return _event_stream(stream())
 
 
@@ -117,16 +123,14 @@ async def run_stream(run_id: str, request: Request) -> StreamingResponse:
 async def _follow(requested: str, watcher: StoreWatcher, reader: StoreReader,
                   settings: WebSettings) -> AsyncIterator[str]:
     follow = requested == "current"
-    seen, run_id = -2, None
+    run_id = None
     sent_steps: set[int] = set()
     sent_events, frames_step, results_sent = 0, None, False
     stream_step: int | None = None
-    while True:
-        version = await watcher.wait(seen, KEEP_ALIVE_S)
-        if version == seen:
+    async for version in _changes_of(watcher):
+        if version is None:
             yield ": keep-alive\n\n"
             continue
-        seen = version
         target = await run_in_threadpool(reader.current_run_id) if follow else requested
         if target is None:
             yield _sse("waiting", {"message": "no runs in the store yet"})
