@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
 from procedures.cli._common import (
     RUN_EXIT_CODES,
@@ -18,10 +17,11 @@ from procedures.cli._common import (
     seconds_value,
     station_for,
 )
+from procedures.engine import PACKAGE_DIR
 
 
 def register(subparsers) -> None:
-    built_in = ", ".join(sorted(path.stem for path in Path(__file__).parent.glob("*.yaml")))
+    built_in = ", ".join(sorted(path.stem for path in PACKAGE_DIR.glob("*.yaml")))
     parser = subparsers.add_parser(
         "run", help="run a procedure on a station",
         description="Dry-run the procedure on the station, then measure; every sample is committed to the run "
