@@ -93,6 +93,9 @@ class AngleCalibrationKind:
     name = "angle_calibration"
     parameters = AngleParameters
     file_model = AngleCalibration
+    result_shape = ResultShape.CALIBRATION
+    iso_test_conditions = False
+    history_figures = ()
 
     def plan(self, params: AngleParameters, station: StationFile) -> list[Step]:
         values = np.radians(inclusive_range(params.start_deg, params.stop_deg, params.step_deg))
@@ -137,10 +140,6 @@ class AngleCalibrationKind:
         return analyse_calibration(samples, ctx, kind="angle", component_of_axis=ANGLE_COMPONENT,
                                    reference_instrument="rotary table encoder", record_path=params.record_path,
                                    params=params, approach=params.approach)
-
-    result_shape = ResultShape.CALIBRATION
-    iso_test_conditions = False
-    history_figures = ()
 
     def title(self, parameters: Mapping[str, Any], results: Mapping[str, Any] | None) -> str:
         return "Angle calibration of the optical pose reference"

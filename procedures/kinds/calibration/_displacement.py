@@ -130,6 +130,9 @@ class DisplacementCalibrationKind:
     name = "displacement_calibration"
     parameters = DisplacementParameters
     file_model = DisplacementCalibration
+    result_shape = ResultShape.CALIBRATION
+    iso_test_conditions = False
+    history_figures = ()
 
     def plan(self, params: DisplacementParameters, station: StationFile) -> list[Step]:
         values = inclusive_range(params.start_mm, params.stop_mm, params.step_mm) * 1e-3
@@ -261,10 +264,6 @@ class DisplacementCalibrationKind:
                                    reference_instrument="laser interferometer", record_path=params.record_path,
                                    params=params, approach=params.approach,
                                    wavelength_compensation=params.wavelength_compensation)
-
-    result_shape = ResultShape.CALIBRATION
-    iso_test_conditions = False
-    history_figures = ()
 
     def title(self, parameters: Mapping[str, Any], results: Mapping[str, Any] | None) -> str:
         return "Displacement calibration of the optical pose reference"

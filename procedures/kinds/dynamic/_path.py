@@ -100,6 +100,9 @@ class Iso9283PathKind:
     name = "iso9283_path"
     parameters = PathParameters
     file_model = Iso9283Path
+    result_shape = ResultShape.PATH
+    iso_test_conditions = False
+    history_figures = ()
 
     def plan(self, params: PathParameters, station: StationFile) -> list[Step]:
         steps: list[Step] = []
@@ -160,10 +163,6 @@ class Iso9283PathKind:
 
     def analyse(self, samples: Sequence[Sample], params: PathParameters, ctx: AnalysisContext) -> Analysis:
         return Analysis(results=analyse_path(samples, params, ctx))
-
-    result_shape = ResultShape.PATH
-    iso_test_conditions = False
-    history_figures = ()
 
     def title(self, parameters: Mapping[str, Any], results: Mapping[str, Any] | None) -> str:
         return settings_title("ISO 9283 path characteristics", parameters)

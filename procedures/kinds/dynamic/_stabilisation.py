@@ -84,6 +84,9 @@ class Iso9283StabilisationKind:
     name = "iso9283_stabilisation"
     parameters = StabilisationParameters
     file_model = Iso9283Stabilisation
+    result_shape = ResultShape.STABILISATION
+    iso_test_conditions = False
+    history_figures = ()
 
     def plan(self, params: StabilisationParameters, station: StationFile) -> list[Step]:
         steps: list[Step] = []
@@ -138,10 +141,6 @@ class Iso9283StabilisationKind:
 
     def analyse(self, samples: Sequence[Sample], params: StabilisationParameters, ctx: AnalysisContext) -> Analysis:
         return Analysis(results=analyse_stabilisation(samples, params, ctx))
-
-    result_shape = ResultShape.STABILISATION
-    iso_test_conditions = False
-    history_figures = ()
 
     def title(self, parameters: Mapping[str, Any], results: Mapping[str, Any] | None) -> str:
         return settings_title("ISO 9283 pose stabilisation", parameters)

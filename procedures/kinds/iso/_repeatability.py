@@ -52,6 +52,9 @@ class Iso9283RepeatabilityKind:
     name = "iso9283_repeatability"
     parameters = IsoParameters
     file_model = Iso9283Repeatability
+    result_shape = ResultShape.ISO_POSE
+    iso_test_conditions = True
+    history_figures = ("rp_l", "rp_a", "rp_b", "rp_c", "ap_p")
 
     def plan(self, params: IsoParameters, station: StationFile) -> list[Step]:
         points = cube_path(params, station)
@@ -111,10 +114,6 @@ class Iso9283RepeatabilityKind:
 
     def analyse(self, samples: Sequence[Sample], params: IsoParameters, ctx: AnalysisContext) -> Analysis:
         return Analysis(results=analyse_iso(samples, ctx, params))
-
-    result_shape = ResultShape.ISO_POSE
-    iso_test_conditions = True
-    history_figures = ("rp_l", "rp_a", "rp_b", "rp_c", "ap_p")
 
     def title(self, parameters: Mapping[str, Any], results: Mapping[str, Any] | None) -> str:
         """"ISO 9283 pose repeatability and accuracy — N cycles": the fewest cycles measured at a point once the
