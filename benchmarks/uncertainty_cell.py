@@ -33,9 +33,8 @@ import numpy as np
 import yaml
 
 from instrument.uncertainty import CoverageTable, coverage_study
-from procedures._api import open_engine
-from procedures._loading import resolve_procedure_path
-from procedures.kinds._iso_analysis import coverage_case
+from procedures.engine import open_engine, resolve_procedure_path
+from procedures.kinds.iso import coverage_case
 
 FAMILIES = {
     "RP_l, RP_a/b/c": ("rp_l", "rp_a", "rp_b", "rp_c"),

@@ -19,14 +19,11 @@ from typing import Any
 import numpy as np
 import yaml
 
-from procedures._api import open_engine
-from procedures._cli_display import Display
-from procedures._loading import resolve_procedure_path
-from procedures._report import render_report
-from procedures._run_state import RunState
-from procedures._store import RunStore
-
-ARCSEC = np.pi / (180 * 3600)
+from instrument import ARCSEC
+from procedures.cli import Display
+from procedures.engine import open_engine, resolve_procedure_path
+from procedures.report import render_report
+from procedures.store import RunState, RunStore
 
 # The demo keeps the paper's calibration grids and cycle count; what it shortens are the waits
 # that a real cell needs and a simulated one does not (settling, averaging, repeated frames).
@@ -72,7 +69,7 @@ class DemoProgress:
 
 def plan_sizes(procedures: list[Path], station: Path) -> list[tuple[int, int]]:
     """Planned poses and set-up changes of each procedure on the station (the plans are pure functions)."""
-    from procedures._loading import load_procedure, load_station
+    from procedures.engine import load_procedure, load_station
     from procedures.kinds import kind_of
 
     model = load_station(station)

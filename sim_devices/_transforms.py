@@ -12,6 +12,9 @@ from __future__ import annotations
 
 import numpy as np
 
+ARCSEC = np.pi / (180.0 * 3600.0)
+"""One arc-second in radians (the twins' own: they never import ``instrument``)."""
+
 
 def rot_x(angle: float) -> np.ndarray:
     c, s = np.cos(angle), np.sin(angle)

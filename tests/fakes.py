@@ -25,12 +25,19 @@ from drivers.camera import Frame, GrabFailed
 from drivers.interferometer import DatumLost, EnvironmentReading, FeedGap, HeadOptics
 from drivers.robot import MotionEnvelope, ProtectiveStop, RobotIdentity, RobotState
 from drivers.rotary_table import TableState
-from procedures._geometry import euler_to_matrix, matrix_to_euler, tcp_in_m, ur_to_matrix
-from procedures._science import CalibrationResult, MeasurementFailed, PoseMeasurement
+from instrument import COMPONENTS
+from procedures.station import (
+    CalibrationResult,
+    MeasurementFailed,
+    PoseMeasurement,
+    euler_to_matrix,
+    matrix_to_euler,
+    tcp_in_m,
+    ur_to_matrix,
+)
 
 REFERENCE_TCP = [0.45, -0.10, 0.27, np.pi, 0.0, 0.0]
 TOOL_IN_OPR = [0.0, 0.0, 0.07, 0.0, 0.0, 0.0]
-COMPONENTS = ("x", "y", "z", "a", "b", "c")
 
 
 def station_dict(truth_log: str | None = None, **overrides) -> dict:
@@ -618,7 +625,7 @@ def main(argv: list[str]) -> int:
     """Child-process entry for the kill -9 test."""
     import argparse
 
-    from procedures._api import open_engine
+    from procedures.engine import open_engine
 
     parser = argparse.ArgumentParser()
     parser.add_argument("runs_dir")

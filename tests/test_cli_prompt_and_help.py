@@ -12,9 +12,8 @@ import time
 
 import pytest
 
-from procedures._cli_common import ask_pause_key
-from procedures._cmd_sim import endpoint_lines
-from procedures.cli import build_parser
+from procedures.cli import ask_pause_key, build_parser, endpoint_lines
+from procedures.kinds import KINDS
 
 
 @pytest.fixture
@@ -74,6 +73,8 @@ def test_every_argument_of_every_command_has_help_and_run_lists_its_exit_codes()
     subparsers = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
     for name in subparsers.choices:
         assert "exit codes" in subparsers.choices[name].format_help().lower(), name
+    procedure = next(a for a in subparsers.choices["run"]._actions if a.dest == "procedure")
+    assert all(name in procedure.help for name in KINDS), procedure.help  # the built-in procedures, by name
 
 
 def test_sim_prints_endpoints_a_person_reads():

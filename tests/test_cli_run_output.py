@@ -14,12 +14,10 @@ from pathlib import Path
 
 import pytest
 
-from procedures._api import open_engine
-from procedures._cli_common import drive
-from procedures._cli_display import Display
-from procedures._errors import ConfigError
-from procedures._run_state import RunState
-from procedures.cli import main
+from procedures.cli import Display, drive, main
+from procedures.engine import open_engine
+from procedures.station import ConfigError
+from procedures.store import RunState
 from tests.fakes import FakeCell, FakeScience, write_station
 
 ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
@@ -73,8 +71,8 @@ def test_held_out_residuals_of_a_real_calibration_fit_are_shown():
     held-out RMS of the method the record kept (the lowest), in µm, beside its noise floor."""
     import numpy as np
 
-    from procedures._cli_results import calibration_lines, held_out_rows
-    from procedures._science import InstrumentScience
+    from procedures.report import calibration_lines, held_out_rows
+    from procedures.station import InstrumentScience
 
     rng = np.random.default_rng(3)
     rows = []
@@ -157,6 +155,8 @@ def test_set_overrides_are_validated_stored_and_shown(tmp_path):
     assert run["total_steps"] == 5 + 2 * 5
     assert run["procedure_text"].startswith("# iso9283_repeatability.yaml run with --set cycles=2 "
                                             "--set save_frames=never\n")
+    report = (tmp_path / "runs" / run["id"] / "report.html").read_text(encoding="utf-8")
+    assert "<h1>ISO 9283 pose repeatability and accuracy — 2 cycles</h1>" in report  # the kind's title, as run
     for bad, expected in (
         ["cycles=thirty"], "--set cycles=thirty: parameters.cycles: input should be a valid integer",
     ), (["cycle=3"], "--set cycle=3: parameters.cycle: unknown field"), (["cycles"], "--set cycles: expected "

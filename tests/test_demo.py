@@ -2,8 +2,8 @@
 
 import numpy as np
 
-from procedures._loading import load_procedure
 from procedures.demo import ARCSEC, DEMO_PARAMETERS, iso_table, write_procedure
+from procedures.engine import load_procedure
 
 
 def test_demo_procedures_validate_and_keep_the_paper_grids(tmp_path):

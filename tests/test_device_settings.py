@@ -2,7 +2,7 @@
 
 For every adapter: a typo in a setting, a wrong adapter name and a wrong type, each reported as
 ``station.yaml:LINE: devices.<role>.<setting>: ...`` with the allowed names, exit code 1 and no
-traceback; through ``procedures._loading.load_station``, through ``procedures.cli.main`` and
+traceback; through ``procedures.engine.load_station``, through ``procedures.cli.main`` and
 once through the ``instrument`` command in its own process. Plus: the station the simulated
 cell writes validates, and the published schema shows every adapter's fields.
 """
@@ -22,9 +22,9 @@ from drivers.camera import AravisSettings, PylonSettings
 from drivers.interferometer import SlcanSettings, SocketcandSettings
 from drivers.robot import ABBRwsSettings, URRtdeSettings
 from drivers.rotary_table import GcsSerialSettings, GcsTcpSettings, ModbusRtuSettings, ModbusTcpSettings
-from procedures._errors import ConfigError
-from procedures._loading import SCHEMA_DIR, load_station
 from procedures.cli import main
+from procedures.engine import SCHEMA_DIR, load_station
+from procedures.station import ConfigError
 from tests.fakes import station_dict
 
 

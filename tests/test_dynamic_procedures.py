@@ -16,12 +16,11 @@ import pytest
 import yaml
 
 from instrument.iso9283 import pose_stabilisation
-from procedures._api import open_engine
-from procedures._geometry import ur_to_matrix
-from procedures._run_state import RunState
-from procedures._store import RunStore
-from procedures.kinds._dynamic_analysis import tool_poses
-from procedures.kinds._dynamic_stream import COLUMNS, StreamRecord
+from procedures.engine import open_engine
+from procedures.kinds import COLUMNS, StreamRecord
+from procedures.kinds.dynamic import tool_poses
+from procedures.station import ur_to_matrix
+from procedures.store import LATEST, RunState, RunStore
 from tests.fakes import TOOL_IN_OPR, FakeCell, FakeScience, write_station
 
 pytestmark = pytest.mark.timeout(120)
@@ -231,7 +230,7 @@ def test_streams_round_trip_on_postgresql(tmp_path):
             streams = store.streams(run_id)
             version = store._db.rows("SELECT MAX(version) AS v FROM schema_version")[0]["v"]
             results = store.get_run(run_id)["results"]
-        assert version == 5 and sorted(streams) == [0, 1]
+        assert version == LATEST and sorted(streams) == [0, 1]  # the streams table came with version 5
         for step, stored in streams.items():
             record = StreamRecord.from_stored(stored)
             assert len(record) > 50 and record.meta["rate_hz"] == 200.0

@@ -16,8 +16,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from procedures._api import open_engine
-from procedures._run_state import RunState
+from procedures.engine import open_engine
+from procedures.store import RunState
 from sim_devices.camera import IDEAL_OPTICS
 from sim_devices.cell import SimCell
 from sim_devices.world import EXACT_MOUNTS

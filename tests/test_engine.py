@@ -7,10 +7,9 @@ import time
 import numpy as np
 import pytest
 
-from procedures._api import open_engine
-from procedures._errors import RunError
-from procedures._geometry import tcp_in_m
-from procedures._report import export_json, render_report
+from procedures.engine import open_engine
+from procedures.report import export_json, render_report
+from procedures.station import RunError, tcp_in_m
 from tests.fakes import REFERENCE_TCP, FakeCell, FakeScience, write_station
 
 
@@ -85,7 +84,7 @@ def test_displacement_reference_is_interferometer_relative_to_group_start(setup)
     for s in samples:
         # the reference is the nominal start plus the interferometer reading; it must follow the
         # commanded position to within the robot's repeatability
-        assert s.reference["value"] == pytest.approx(s.meta["nominal"], abs=40e-6)
+        assert s.reference.value == pytest.approx(s.meta["nominal"], abs=40e-6)
 
 
 def test_dry_run_refuses_targets_outside_the_envelope(setup):
@@ -230,7 +229,7 @@ def test_a_frame_of_the_previous_pose_is_measured_again_and_never_stored_as_good
     assert len(caught) == stale_triples and all(m.startswith(samples[2].step_key) for m in caught)
     assert [s.ok for s in samples] == [True, True, stale_triples < 3, *[True] * (len(samples) - 3)]
     if stale_triples < 3:  # measured again: the pose of P4, not of P5
-        p4 = [s.solved["pose"][:3] for s in samples if s.label == "P4"]
+        p4 = [s.solved.pose[:3] for s in samples if s.label == "P4"]
         assert len(p4) == 3 and np.all(np.ptp(p4, axis=0) < 1e-3)  # within a mm (P5 is 35 mm away)
     else:
         assert "stale or wrong frame" in samples[2].error
@@ -247,7 +246,7 @@ def test_without_the_plausibility_check_a_stale_frame_would_be_stored_as_good(se
         assert engine.execute() == "FINISHED"
         samples = engine.store.samples(engine.run_id)
     assert samples[2].ok and samples[2].label == "P4"
-    p4 = [s.solved["pose"][:3] for s in samples if s.label == "P4"]
+    p4 = [s.solved.pose[:3] for s in samples if s.label == "P4"]
     assert np.max(np.ptp(p4, axis=0)) > 10e-3
 
 
@@ -334,7 +333,7 @@ def test_retries_back_off(setup):
     with _engine(tmp_path, station, cell, proc) as engine:
         assert engine.execute() == "FINISHED"
         first = engine.store.samples(engine.run_id)[0]
-    assert first.ok and first.solved["attempts"] == 3
+    assert first.ok and first.solved.quality.attempts == 3
     assert first.t_committed - first.t_start >= 0.3 + 0.6  # waited 0.3 s, then 0.6 s, before the retries
 
 
@@ -364,8 +363,8 @@ def test_a_resumed_displacement_group_reestablishes_its_datum(setup):
         results = engine.store.get_run(run_id)["results"]
     datums = [e["message"] for e in events if e["kind"] == "datum"]
     assert len(datums) == 1 and "no datum in this session" in datums[0] and "disp/y/g0/r1/p05" in datums[0]
-    assert [s.reference["datum_reestablished"] for s in samples] == [False] * 20 + [True] * 10
-    assert len({s.reference["datum_set_at"] for s in samples}) == 2
+    assert [s.reference.readings["datum_reestablished"] for s in samples] == [False] * 20 + [True] * 10
+    assert len({s.reference.readings["datum_set_at"] for s in samples}) == 2
     # The analysis joins the two datums: the offset the robot's repeatability put between them is
     # estimated from the points measured under both, so the fitted references follow the truth.
     rows = _datum_rows(results)
@@ -387,9 +386,9 @@ def test_a_datum_lost_mid_group_is_reestablished_and_the_run_goes_on(setup):
         samples = engine.store.samples(engine.run_id)
         events = engine.store.events(engine.run_id)
     assert [e["kind"] for e in events if e["kind"].startswith("datum")] == ["datum_lost", "datum"]
-    assert [s.reference["datum_reestablished"] for s in samples] == [False] * 6 + [True] * 24
+    assert [s.reference.readings["datum_reestablished"] for s in samples] == [False] * 6 + [True] * 24
     for s in samples:  # every reference still follows the commanded position, within the robot's repeatability
-        assert s.reference["value"] == pytest.approx(s.meta["nominal"], abs=40e-6)
+        assert s.reference.value == pytest.approx(s.meta["nominal"], abs=40e-6)
 
 
 # --------------------------------------------------------------------------- signals and states
@@ -398,7 +397,7 @@ def _signals(tmp_path, station, cell, proc, presses, pause_handler):
     samples are committed (the handlers run in this thread, as in the CLI)."""
     import signal
 
-    from procedures._cli_common import signals_control
+    from procedures.cli import signals_control
 
     def listener(event):
         if event["event"] == "progress":
@@ -448,7 +447,7 @@ def test_sigterm_and_sighup_abort_like_a_second_ctrl_c(setup, name):
 
 
 def test_a_detached_pause_returns_at_once(setup):
-    from procedures._cli_common import detach_at_once
+    from procedures.cli import detach_at_once
 
     tmp_path, station, cell = setup
     cell.protective_stop_on_moves = {3}

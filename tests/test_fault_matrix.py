@@ -32,11 +32,11 @@ from typing import Any
 import numpy as np
 import pytest
 
-from procedures._truth import TruthLog
+from instrument import ARCSEC
+from procedures.station import TruthLog
 from sim_devices.cell import SimCell
 
 ROOT = Path(__file__).resolve().parents[1]
-ARCSEC = np.pi / (180 * 3600)
 pytestmark = pytest.mark.slow
 
 # Small procedures: each run is 10-18 poses. Retries back off as by default (1 s, then 2 s).

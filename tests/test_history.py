@@ -11,11 +11,11 @@ import math
 
 import pytest
 
-from procedures._cli_results import ARCSEC, figure, iso_rows
-from procedures._run_state import RunState
-from procedures._store import RunStore
+from instrument import ARCSEC
 from procedures.cli import main
-from procedures.serve._reader import StoreReader, iso_points
+from procedures.report import iso_points, iso_rows, point_figure
+from procedures.serve import StoreReader
+from procedures.store import RunState, RunStore
 
 SERIAL = "20235500777"
 
@@ -86,12 +86,12 @@ def test_history_of_an_unknown_robot_names_the_known_ones(runs_dir, capsys):
 
 
 def test_figures_fall_back_to_the_sampling_interval():
-    with_ci = figure(_iso_results(30e-6, ci=4e-6)["points"]["P1"], "rp_l")
+    with_ci = point_figure(_iso_results(30e-6, ci=4e-6)["points"]["P1"], "rp_l")
     assert with_ci["u"] == pytest.approx(4e-6) and with_ci["u_source"] == "ci"
-    with_u = figure(_iso_results(30e-6, u=1e-6, ci=4e-6)["points"]["P1"], "rp_l")
+    with_u = point_figure(_iso_results(30e-6, u=1e-6, ci=4e-6)["points"]["P1"], "rp_l")
     assert with_u["u"] == 1e-6 and with_u["u_source"] == "U" and with_u["ci"] == pytest.approx([26e-6, 34e-6])
-    assert figure({"stats": {"rp_l": math.nan}}, "rp_l") is None
-    assert figure({"stats": {}}, "rp_a") is None
+    assert point_figure({"stats": {"rp_l": math.nan}}, "rp_l") is None
+    assert point_figure({"stats": {}}, "rp_a") is None
 
 
 def test_the_web_views_robot_history_groups_by_serial_and_flags_the_same_change(runs_dir):

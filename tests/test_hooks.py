@@ -7,6 +7,7 @@ started and stopped by a fixture. Every call has a total deadline; nothing a hoo
 """
 
 import http.server
+import importlib.metadata
 import json
 import os
 import socket
@@ -15,10 +16,8 @@ import time
 
 import pytest
 
-import procedures._hooks as hooks_module
-from procedures._api import open_engine
-from procedures._hooks import MAX_RESPONSE_BYTES, HookRunner
-from procedures._models import HookSpec
+from procedures.engine import MAX_RESPONSE_BYTES, HookRunner, open_engine
+from procedures.station import HookSpec
 from tests import fakes
 from tests.fakes import FakeCell, FakeScience, write_station
 
@@ -112,7 +111,7 @@ def test_entry_point_hook(monkeypatch):
         def load(self):
             return fakes.record_event
 
-    monkeypatch.setattr(hooks_module, "entry_points",
+    monkeypatch.setattr(importlib.metadata, "entry_points",
                         lambda group, name: [EntryPoint()] if (group, name) == ("opr_instrument.hooks", "cell") else [])
     fakes.RECEIVED_EVENTS.clear()
     assert HookRunner([HookSpec(entry_point="cell")]).call(EVENT) == []

@@ -1,5 +1,6 @@
-"""A fourth procedure kind is one module: the engine, the loader, the CLI and the report run it
-without knowing it. The kind here is defined in this file and registered for the test only."""
+"""A new procedure kind is one module: the engine, the loader, the CLI and the report run it without
+knowing it. The kind here is defined in this file, with a result shape of its own and the report's
+section for it, both registered for the test only."""
 
 from __future__ import annotations
 
@@ -11,14 +12,10 @@ import numpy as np
 import pytest
 from pydantic import Field
 
-import procedures.kinds as kinds_module
-from procedures._api import open_engine
-from procedures._geometry import translated_in_frame
-from procedures._loading import json_schemas
-from procedures._models import StationFile, Vec3
-from procedures._run_state import RunState
-from procedures._store import Sample
+import procedures.kinds as kinds
+import procedures.report as report
 from procedures.cli import main
+from procedures.engine import json_schemas, open_engine
 from procedures.kinds import (
     Analysis,
     AnalysisContext,
@@ -30,6 +27,8 @@ from procedures.kinds import (
     Step,
     StepContext,
 )
+from procedures.station import StationFile, Vec3, translated_in_frame
+from procedures.store import RunState, Sample
 from tests.fakes import FakeCell, FakeScience, write_station
 
 
@@ -71,11 +70,11 @@ class StationaryRepeatKind:
 
     def measure(self, step: Step, params: StationaryParameters, ctx: StepContext) -> Reading:
         ctx.settle()
-        return Reading(pose=ctx.measure_pose(step), reference={})
+        return Reading(pose=ctx.measure_pose(step))
 
     def analyse(self, samples: Sequence[Sample], params: StationaryParameters, ctx: AnalysisContext) -> Analysis:
         at_point = [s for s in samples if s.phase == "point" and s.ok and s.solved]
-        positions = np.array([s.solved["pose"][:3] for s in at_point if s.solved])
+        positions = np.array([s.solved.pose[:3] for s in at_point if s.solved])
         results: dict[str, Any] = {"kind": "stationary", "n": len(positions),
                                    "spread_m": positions.std(axis=0, ddof=1).tolist()}
         if ctx.truth is not None:
@@ -83,17 +82,28 @@ class StationaryRepeatKind:
             results["true_spread_m"] = np.std([t["opr_in_m"]["t"] for t in true if t], axis=0, ddof=1).tolist()
         return Analysis(results=results)
 
-    def report_html(self, results: Mapping[str, Any]) -> str:
-        return f"<h2>Stationary repeat</h2><p>{results['n']} visits</p>"
+    result_shape = "stationary"
+    iso_test_conditions = False
+    history_figures = ()
 
-    def summary_lines(self, results: Mapping[str, Any]) -> list[str]:
-        return [f"visits     {results['n']}"]
+    def title(self, parameters: Mapping[str, Any], results: Mapping[str, Any] | None) -> str:
+        return f"Stationary repeat — {parameters['visits']} visits"
+
+
+# ... and, in the report, the section of its results' shape
+STATIONARY_SECTION = report.ResultSection(
+    html=lambda results: f"<h2>Stationary repeat</h2><p>{results['n']} visits</p>",
+    show_lines=lambda results: [f"visits     {results['n']}"])
 
 
 # ------------------------------------------------------------------------------------------ tests
 @pytest.fixture
-def registered(monkeypatch):
-    monkeypatch.setitem(kinds_module._KINDS, "stationary_repeat", StationaryRepeatKind())
+def registered():
+    kinds.register(StationaryRepeatKind())
+    report.register_section("stationary", STATIONARY_SECTION)
+    yield
+    report.unregister_section("stationary")
+    kinds.unregister("stationary_repeat")
 
 
 def test_the_engine_runs_a_kind_it_does_not_know(registered, tmp_path, capsys):
@@ -120,6 +130,7 @@ def test_the_engine_runs_a_kind_it_does_not_know(registered, tmp_path, capsys):
     assert main(["report", run["id"], "--runs-dir", str(tmp_path / "runs")]) == 0
     html = open(capsys.readouterr().out.strip(), encoding="utf-8").read()
     assert "<h2>Stationary repeat</h2><p>12 visits</p>" in html
+    assert "<h1>Stationary repeat — 12 visits</h1>" in html  # the title the kind words from its parameters
 
 
 def test_its_schema_and_errors_come_with_it(registered, tmp_path, capsys):

@@ -16,14 +16,11 @@ import yaml
 from hypothesis import find, given, settings
 from hypothesis import strategies as st
 
-from procedures._errors import ConfigError
-from procedures._geometry import tcp_in_m
-from procedures._loading import load_procedure
-from procedures._models import StationFile
+from procedures.engine import load_procedure
 from procedures.kinds import KINDS, ProcedureBase
-from procedures.kinds.angle_calibration import AngleParameters
-from procedures.kinds.displacement_calibration import DisplacementParameters
-from procedures.kinds.iso9283_repeatability import IsoParameters
+from procedures.kinds.calibration import AngleParameters, DisplacementParameters
+from procedures.kinds.iso import IsoParameters
+from procedures.station import ConfigError, StationFile, tcp_in_m
 from tests.fakes import station_dict
 
 # Reproducible: the same examples on every run, no example database between runs.

@@ -5,8 +5,8 @@ import textwrap
 
 import pytest
 
-from procedures._api import open_engine
 from procedures.cli import main
+from procedures.engine import open_engine
 from tests.fakes import FakeCell, FakeScience, write_station
 
 
@@ -43,7 +43,7 @@ def test_validate_ok_and_bad(tmp_path, capsys):
 
 
 def test_validate_shipped_procedures(capsys):
-    from procedures._loading import PACKAGE_DIR
+    from procedures.engine import PACKAGE_DIR
 
     files = [str(PACKAGE_DIR / f"{n}.yaml") for n in ("displacement_calibration", "angle_calibration",
                                                        "iso9283_repeatability")]

@@ -14,9 +14,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-import procedures._cmd_show
-from procedures._store import RunStore
 from procedures.cli import ERROR_LOG, main
+from procedures.store import RunStore
 from sim_devices.cell import SimCell
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -209,10 +208,10 @@ def test_absurd_numbers_on_the_command_line_are_refused_by_the_parser(tmp_path, 
 
 
 def test_an_unforeseen_error_is_one_line_and_its_traceback_goes_to_the_log(runs_with_many_runs, capsys, monkeypatch):
-    def broken(args):
+    def broken(store, run_id):
         raise ZeroDivisionError("a bug")
 
-    monkeypatch.setattr(procedures._cmd_show, "run", broken)
+    monkeypatch.setattr(RunStore, "samples", broken)  # a bug in what ``show`` calls
     run_id = RunStore(runs_with_many_runs).list_runs()[0]["id"]
     line = _one_line_internal(capsys, main(["show", run_id, "--runs-dir", str(runs_with_many_runs)]))
     log = runs_with_many_runs / ERROR_LOG

@@ -6,14 +6,14 @@ import textwrap
 import pytest
 import yaml
 
-from procedures._errors import ConfigError
-from procedures._loading import SCHEMA_DIR, json_schemas, load_procedure, load_station
+from procedures.engine import SCHEMA_DIR, json_schemas, load_procedure, load_station
+from procedures.station import ConfigError
 from tests.fakes import station_dict
 
 
 @pytest.mark.parametrize("name", ["displacement_calibration", "angle_calibration", "iso9283_repeatability"])
 def test_shipped_procedures_validate(name):
-    from procedures._loading import resolve_procedure_path
+    from procedures.engine import resolve_procedure_path
 
     proc = load_procedure(resolve_procedure_path(name))
     assert proc.procedure == name
@@ -187,4 +187,5 @@ def test_fake_station_is_valid(tmp_path):
 def test_committed_schemas_match_the_models():
     for name, schema in json_schemas().items():
         committed = json.loads((SCHEMA_DIR / f"{name}.json").read_text())
-        assert committed == json.loads(json.dumps(schema)), f"regenerate with python -m procedures._loading ({name})"
+        assert committed == json.loads(json.dumps(schema)), \
+            f"regenerate with python -m procedures.engine.write_schemas ({name})"

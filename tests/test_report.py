@@ -18,12 +18,10 @@ from pathlib import Path
 
 import pytest
 
-from procedures._api import open_engine
-from procedures._report import export_csv, export_json, render_report
-from procedures._report_conditions import quantity
+from instrument import ARCSEC
+from procedures.engine import open_engine
+from procedures.report import export_csv, export_json, quantity, render_report
 from tests.fakes import FakeCell, FakeScience, write_station
-
-ARCSEC = math.pi / (180 * 3600)
 
 
 def fake_run(tmp_path: Path, kind: str, name: str | None = None, **params):
@@ -393,15 +391,15 @@ def test_exports(tmp_path):
     run, samples, events = fake_run(tmp_path, "iso9283_repeatability", cycles=2)
     rows = list(csv.DictReader(io.StringIO(export_csv(samples))))
     assert len(rows) == len(samples) == 15
-    assert float(rows[3]["solved_x_m"]) == pytest.approx(samples[3].solved["pose"][0])
+    assert float(rows[3]["solved_x_m"]) == pytest.approx(samples[3].solved.pose[0])
     assert rows[0]["step_key"] == "transform/c000/P1"
     data = json.loads(export_json(run, samples, events))
     assert data["run"]["id"] == run["id"] and len(data["samples"]) == 15
-    assert data["samples"][0]["commanded"]["tcp_pose"] == samples[0].commanded["tcp_pose"]
+    assert data["samples"][0]["commanded"]["tcp_pose"] == list(samples[0].commanded.tcp_pose)
 
 
 def test_u_has_two_significant_digits_and_the_value_the_same_decimal_place():
-    from procedures._report_format import MICROMETRES, Figure, figure_cell
+    from procedures.report import MICROMETRES, Figure, figure_cell
 
     assert figure_cell(Figure(1.36123e-6, 0.0043e-6), MICROMETRES) == (
         "<td><span class=v>1.3612</span> <span class=u>± 0.0043</span></td>")

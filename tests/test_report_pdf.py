@@ -9,15 +9,13 @@ from pathlib import Path
 
 import pytest
 
-from procedures._report import render_report, robot_label
-from procedures._report_pdf import PdfUnavailable, render_pdf
+from instrument import ARCSEC
 from procedures.cli import main
+from procedures.report import PdfUnavailable, render_pdf, render_report, robot_label
 from tests.test_report import as_stored_by_older_code, fake_run, with_stored_figures
 
 pdfminer = pytest.importorskip("pdfminer.high_level", reason="pdfminer.six (a test dependency) reads the PDF back")
 from pdfminer.layout import LTTextLine  # noqa: E402  (after the skip: only with pdfminer installed)
-
-ARCSEC = math.pi / (180 * 3600)
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -93,7 +91,7 @@ def test_default_pdf_path_is_in_the_runs_folder(iso_pdf, capsys):
 
 def test_pdf_of_stored_figures_shows_value_u_and_conditions(iso_pdf, tmp_path):
     run, _, tmp = iso_pdf
-    from procedures._store import RunStore
+    from procedures.store import RunStore
 
     with RunStore(tmp / "runs") as store:
         stored = with_stored_figures(as_stored_by_older_code(store.get_run(run["id"])))

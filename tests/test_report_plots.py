@@ -9,9 +9,7 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pytest
 
-from procedures._report import render_report
-from procedures._report_iso import figure
-from procedures._svg import Circle, lines, scatter
+from procedures.report import Circle, figure, lines, render_report, scatter
 from tests.test_report import fake_run
 
 SVG = "{http://www.w3.org/2000/svg}"

@@ -18,13 +18,12 @@ import pytest
 import yaml
 
 from instrument.environment import AirConditions, wavelength_compensation_factor
-from procedures._api import open_engine
-from procedures._science import InstrumentScience
-from procedures._store import RunStore
 from procedures.cli import main
+from procedures.engine import open_engine
+from procedures.station import InstrumentScience
+from procedures.store import RunStore
 from tests.fakes import FakeCell, FakeScience, station_dict
 
-ARCSEC = np.pi / (180 * 3600)
 FIGURE_KEYS = {"value", "expanded_uncertainty", "coverage_factor", "confidence_interval", "true"}
 
 
@@ -142,7 +141,7 @@ def test_directions_reach_the_records_and_a_one_directional_angle_record_is_flag
     approach = calibrated["iso"]["results"]["points"]["P1"]["approach"]
     assert approach == {"x": 1, "y": 1, "z": 1, "a": None, "b": None, "c": None}
     iso_samples = [s for s in calibrated["iso"]["samples"] if s.phase == "iso"]
-    assert all(s.corrected["direction"] == s.reference["approach"] for s in iso_samples)
+    assert all(s.corrected.direction == s.reference.approach for s in iso_samples)
     # Angles never move, and the displacement record is bidirectional: nothing uncovered.
     assert "direction_not_covered" not in {d["code"] for d in calibrated["iso"]["results"]["deviations"]}
 
@@ -164,7 +163,7 @@ def test_every_displacement_point_is_approached_from_the_planned_side(tmp_path):
     by_pose = {tuple(np.round(t, 9)): t for t in targets}
     assert by_pose
     for sample in run["samples"]:
-        target = np.asarray(sample.commanded["tcp_pose"])
+        target = np.asarray(sample.commanded.tcp_pose)
         # The move before the sample's target along M's y (= −y of the base: the reference is flipped about x).
         while True:
             move = next(moves)
@@ -184,17 +183,17 @@ def test_displacement_reference_is_compensated_for_the_air(tmp_path):
     assert factor - 1 == pytest.approx(31.5e-6, rel=0.02)  # docs/environment.md: 28 °C, 92 kPa, 30 % RH
     far = [s for s in run["samples"] if s.meta["point"] == max(x.meta["point"] for x in run["samples"])]
     for sample in far:
-        reference = sample.reference
-        assert reference["wavelength_compensation"]["factor"] == pytest.approx(factor)
-        assert reference["interferometer_m"] == pytest.approx(reference["interferometer_raw_m"] * factor)
-        assert reference["environment"]["air_temperature_k"] == 301.15
-        assert reference["environment"]["material_temperatures_k"] == [301.35, None, None]
+        readings, environment = sample.reference.readings, sample.reference.environment
+        assert readings["wavelength_compensation"]["factor"] == pytest.approx(factor)
+        assert readings["interferometer_m"] == pytest.approx(readings["interferometer_raw_m"] * factor)
+        assert environment is not None and environment["air_temperature_k"] == 301.15
+        assert environment["material_temperatures_k"] == [301.35, None, None]
     rows = run["results"]["data"]["x"]
     for g in {r["group"] for r in rows}:
         mine = [r for r in rows if r["group"] == g]
         d = np.array([r["reference"] - r["true"] for r in mine])
         assert np.max(np.abs(d - d.mean())) < 0.5e-6  # compensated: true to the fake head's noise
-    raw_error = [s.reference["interferometer_raw_m"] - s.reference["interferometer_m"] for s in far]
+    raw_error = [s.reference.readings["interferometer_raw_m"] - s.reference.readings["interferometer_m"] for s in far]
     assert min(abs(e) for e in raw_error) > 1.5e-6  # uncompensated, 70 mm read 2.2 µm short
     conditions = run["results"]["test_conditions"]
     assert conditions["wavelength_compensation"]["factor_mean"] == pytest.approx(factor)
@@ -206,7 +205,7 @@ def test_an_environmental_feed_gap_is_read_again_and_a_sensor_fault_fails_the_ru
     cell.environment_gaps = {2}
     run = _run(tmp_path, cell, "displacement_calibration", _station(tmp_path, tmp_path / "t.jsonl"), axes=["z"],
                repeats=2, retry_backoff_s=0)
-    assert all(s.reference["environment"] is not None for s in run["samples"])
+    assert all(s.reference.environment is not None for s in run["samples"])
     cell.environment_faults = {cell.environment_reads + 3}
     procedure = tmp_path / "again.yaml"
     procedure.write_text("procedure: displacement_calibration\nparameters: {axes: [z], repeats: 2, settle_time_s: 0, "

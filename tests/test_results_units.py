@@ -8,24 +8,21 @@ import numpy as np
 import pytest
 import yaml
 
+from instrument import ARCSEC
 from instrument.environment import AirConditions
 from instrument.uncertainty import Correlation
-from procedures._models import StationFile
-from procedures.kinds._approach import pose_directions
-from procedures.kinds._calibration_results import before_after, off_axis_slopes
-from procedures.kinds._environment import environment_summary
-from procedures.kinds._iso_budget import (
+from procedures.kinds import environment_summary, pose_directions, scale_uncertainty
+from procedures.kinds.calibration import before_after, off_axis_slopes
+from procedures.kinds.iso import (
     BudgetUnavailable,
     environment_scale_term,
     iso_budget,
+    largest_cube_edge,
     off_axis_error,
     squareness_terms,
 )
-from procedures.kinds._iso_conditions import largest_cube_edge
-from procedures.kinds._references import scale_uncertainty
+from procedures.station import StationFile
 from tests.fakes import station_dict
-
-ARCSEC = math.pi / (180 * 3600)
 
 
 def test_pose_directions_are_the_signs_of_the_move():

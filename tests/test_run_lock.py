@@ -13,12 +13,10 @@ from pathlib import Path
 
 import pytest
 
-from procedures._api import open_engine
-from procedures._cli_common import cell_directory
-from procedures._errors import RunLocked, StateConflict
-from procedures._run_state import RunState
-from procedures._store import RunStore
-from procedures.cli import main
+from procedures.cli import cell_directory, main
+from procedures.engine import open_engine
+from procedures.station import RunLocked, StateConflict
+from procedures.store import RunState, RunStore
 from tests.fakes import FakeCell, FakeScience, write_station
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from instrument.vision import locate_cross
-from procedures._api import open_engine
-from procedures._store import RunStore
+from procedures.engine import open_engine
 from procedures.serve import StoreReader, WebSettings, create_app, latest_frames, stripe_lines, write_live_frames
+from procedures.store import RunStore
 from tests.fakes import FakeCell, FakeScience, write_station
 from tests.synthetic_cross import render_cross
 
@@ -78,7 +78,7 @@ def test_points_and_figures_are_the_stored_ones(client, store):
     points = client.get(f"/api/runs/{first}/points").json()["points"]
     assert [p["key"] for p in points] == [s.step_key for s in samples]
     for point, sample in zip(points, samples):
-        assert point["pose"] == pytest.approx((sample.corrected or sample.solved)["pose"])
+        assert point["pose"] == pytest.approx(sample.pose)
     assert len(client.get(f"/api/runs/{first}/points", params={"after": 9}).json()["points"]) == len(samples) - 10
     detail = client.get(f"/api/runs/{first}").json()
     for label, figures in detail["iso_points"].items():

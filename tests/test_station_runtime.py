@@ -11,8 +11,7 @@ import drivers.robot
 from drivers import DeviceConnectionError
 from drivers.camera import PylonSettings
 from drivers.robot import URRtdeSettings
-from procedures._models import StationFile
-from procedures._station import StationRuntime
+from procedures.station import StationFile, StationRuntime
 from tests.fakes import FakeCamera, FakeCell, FakeRobot, station_dict
 
 

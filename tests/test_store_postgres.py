@@ -16,12 +16,10 @@ from pathlib import Path
 
 import pytest
 
-from procedures._api import open_engine
-from procedures._errors import RunLocked, StateConflict
-from procedures._run_state import RunState
-from procedures._store import DuplicateStep, RunStore, StoreError
-from procedures._store_schema import LATEST
 from procedures.cli import main
+from procedures.engine import open_engine
+from procedures.station import RunLocked, StateConflict
+from procedures.store import LATEST, DuplicateStep, RunState, RunStore, Sample, SolvedPose, StoreError
 from tests._postgres import postgres_server
 from tests.fakes import FakeCell, FakeScience, write_station
 
@@ -60,12 +58,13 @@ def test_schema_is_versioned_and_migrated_once(url, tmp_path):
 def test_samples_events_and_prefixes_as_on_sqlite(url, tmp_path):
     with RunStore(tmp_path, url=url) as store:
         run_id = _new_run(store)
-        store.add_sample(run_id, 0, "iso/c000/P1", "iso", ok=False, error="no cross")
-        store.add_sample(run_id, 0, "iso/c000/P1", "iso", solved={"pose": [0.001, float("nan")]})  # measured again
+        store.add_sample(Sample(run_id, 0, "iso/c000/P1", "iso", ok=False, error="no cross"))
+        store.add_sample(Sample(run_id, 0, "iso/c000/P1", "iso",
+                                solved=SolvedPose(pose=(0.001, float("nan")))))  # measured again
         with pytest.raises(DuplicateStep):
-            store.add_sample(run_id, 0, "iso/c000/P1", "iso")
+            store.add_sample(Sample(run_id, 0, "iso/c000/P1", "iso"))
         (sample,) = store.samples(run_id)
-        assert sample.ok and sample.solved["pose"][0] == 0.001 and sample.solved["pose"][1] != sample.solved["pose"][1]
+        assert sample.ok and sample.solved.pose[0] == 0.001 and sample.solved.pose[1] != sample.solved.pose[1]
         assert [s.error for s in store.superseded_samples(run_id)] == ["no cross"]
         assert store.measured_steps(run_id) == store.committed_steps(run_id) == {0}
         for number in range(30):
@@ -81,8 +80,8 @@ def test_samples_events_and_prefixes_as_on_sqlite(url, tmp_path):
 
 _TRY_LEASE = """
 import sys
-from procedures._errors import RunLocked
-from procedures._store import RunStore
+from procedures.station import RunLocked
+from procedures.store import RunStore
 with RunStore(sys.argv[1], url=sys.argv[2]) as store:
     try:
         store.acquire_lease(sys.argv[3])
@@ -155,7 +154,7 @@ def test_the_change_counter_moves_with_other_connections_commits_only(url, tmp_p
         run_id = _new_run(writer)
         after_create = reader.version()
         assert after_create != before
-        writer.add_sample(run_id, 0, "k", "iso")
+        writer.add_sample(Sample(run_id, 0, "k", "iso"))
         assert reader.version() != after_create
 
 
@@ -173,8 +172,11 @@ def test_an_engine_run_on_postgres_records_the_robot_and_the_cli_reads_it(url, t
     assert not (runs / "runs.sqlite").exists()
     with RunStore(runs, url=url) as store:
         run = store.get_run(run_id)
+        (session,) = store.sessions(run_id)  # the session's test conditions: a run-level record (version 6)
     assert (run["robot_manufacturer"], run["robot_model"], run["robot_serial"], run["robot_controller_version"]) == (
         "Universal Robots", "UR5", "20235500123", "5.15.0.0")  # what the fake controller answers
+    assert session.robot["serial_number"] == "20235500123"
+    assert run["results"]["test_conditions"]["sessions"] == [session.to_stored()]
     assert run["parameters"]["cycles"] == 3 and "--set cycles=3" in run["procedure_text"]
     assert len(run["results"]["points"]["P1"]["stats"]) > 0
 

@@ -16,14 +16,13 @@ import numpy as np
 import pytest
 import yaml
 
+from instrument import ARCSEC
 from instrument.compensation import CalibrationRecord
 from instrument.uncertainty import coverage_study
-from procedures._api import open_engine
-from procedures._loading import resolve_procedure_path
-from procedures.kinds._iso_analysis import coverage_case
+from procedures.engine import open_engine, resolve_procedure_path
+from procedures.kinds.iso import coverage_case
 from sim_devices.cell import SimCell
 
-ARCSEC = np.pi / (180 * 3600)
 pytestmark = pytest.mark.slow
 
 

@@ -7,6 +7,7 @@ import math
 import numpy as np
 import pytest
 
+from instrument import ARCSEC
 from instrument.iso9283 import pose_accuracy, pose_repeatability
 from instrument.pose import Pose
 from instrument.uncertainty import (
@@ -29,7 +30,6 @@ from instrument.uncertainty import (
 from instrument.uncertainty._rotation import compose, decompose, euler_to_matrix, matrix_to_euler
 
 UM = 1e-6
-ARCSEC = math.pi / (180 * 3600)
 POINTS = {"P1": [0.035, 0.035, 0.035], "P2": [0.015, 0.015, 0.015], "P4": [0.055, 0.055, 0.055]}
 
 

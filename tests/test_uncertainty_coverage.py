@@ -2,12 +2,12 @@
 95 % of the time at n = 30 and at n = 5, it is not needlessly wide, the noise bias of a spread is
 corrected, and the harness does fail a budget that leaves a term out."""
 
-import math
 from dataclasses import replace
 
 import numpy as np
 import pytest
 
+from instrument import ARCSEC
 from instrument.uncertainty import (
     CoverageCase,
     IsoRun,
@@ -20,7 +20,6 @@ from instrument.uncertainty import (
     synthetic_iso_run,
 )
 
-ARCSEC = math.pi / (180 * 3600)
 FAMILIES = {
     "RP": ("rp_l", "rp_a", "rp_b", "rp_c"),
     "AP": ("ap_p", "ap_x", "ap_y", "ap_z", "ap_a", "ap_b", "ap_c"),

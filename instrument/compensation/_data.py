@@ -13,12 +13,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from instrument._conventions import ARCSEC, COMPONENTS
+
 #: Pose components: x, y, z in metres; a, b, c (ISO 9283 = the paper's α, θ, γ) in radians.
-COMPONENTS = ("x", "y", "z", "a", "b", "c")
 LINEAR_COMPONENTS = ("x", "y", "z")
 ANGULAR_COMPONENTS = ("a", "b", "c")
 
-ARCSEC = np.pi / (180.0 * 3600.0)  # one arc-second in radians
 MICROMETRE = 1e-6
 
 #: Largest plausible ratio of the error's spread to the measured range. A real calibration error is

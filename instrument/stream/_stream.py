@@ -20,11 +20,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from instrument._conventions import SCREENS
 from instrument.pose import DEFAULT_MAX_RESIDUAL_RMS, Geometry, Pose, PoseError, solve_pose, tool_pose
 from instrument.stream._clock import ClockModel
 from instrument.vision import CrossMeasurement, CrossNotFound, VisionWorkspace, locate_crosses
 
-SCREENS = ("x", "y", "z")
 DEFAULT_MAX_TIMESTAMP_SPREAD = 1e-3  # s: three frames of one trigger are stamped within this
 
 

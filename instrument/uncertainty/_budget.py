@@ -18,9 +18,9 @@ from typing import Any
 
 import numpy as np
 
+from instrument._conventions import COMPONENTS
 from instrument.uncertainty._errors import UncertaintyError
 
-COMPONENTS = ("x", "y", "z", "a", "b", "c")
 MINIMUM_DOF = 3.0  # below this the spread of a Type A standard deviation has no finite variance
 
 

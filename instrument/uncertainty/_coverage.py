@@ -19,13 +19,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from instrument._conventions import ARCSEC
 from instrument.uncertainty._budget import UncertaintyBudget
 from instrument.uncertainty._errors import UncertaintyError
 from instrument.uncertainty._figures import unit_of
 from instrument.uncertainty._propagate import IsoRun, IsoUncertainty, iso_uncertainty
 
 TARGET = (0.93, 0.98)
-ARCSEC = math.pi / (180.0 * 3600.0)
 
 
 @dataclass(frozen=True)

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from instrument._conventions import ARCSEC
 from instrument.iso9283 import iso_cube_points
 from instrument.uncertainty._budget import (
     BudgetTerm,
@@ -33,7 +34,6 @@ from instrument.uncertainty._noise import frame_noise_from_calibration, frame_no
 from instrument.uncertainty._propagate import IsoRun
 from instrument.uncertainty._rotation import compose, euler_to_matrix
 
-ARCSEC = math.pi / (180.0 * 3600.0)
 UM = 1e-6
 
 

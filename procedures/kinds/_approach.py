@@ -15,18 +15,28 @@ session), None where the component does not change.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any, Literal
+from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
-from procedures._geometry import matrix_to_euler, tcp_in_m, translated_in_frame
-from procedures._science import COMPONENTS
+from instrument import COMPONENTS
 from procedures.kinds._protocol import Step, StepContext
+from procedures.station import matrix_to_euler, tcp_in_m, translated_in_frame
 
 Approach = Literal["one", "both"]
 MOVED_M = 1e-6  # a component that moved less than this (m) is not approached from either side
 MOVED_RAD = 1e-6
 _SLACK = 1e-9
+
+
+@dataclass
+class WhereItStands:
+    """Where this session last left the robot on a calibration line and the table on an axis (the approach
+    helpers' memory for one session: a resumed run knows neither, and approaches afresh)."""
+
+    line: tuple[tuple[str, int], float] | None = None  # ((axis, group), position along the axis, m)
+    table: tuple[str, float] | None = None  # (axis, angle, rad)
 
 
 def directions_of(approach: Approach) -> tuple[int, ...]:
@@ -56,27 +66,28 @@ def robot_pose_in_m(reference_tcp_pose: Sequence[float], tcp_pose: Sequence[floa
 def approach_on_line(ctx: StepContext, step: Step, axis_index: int, overshoot_m: float) -> None:
     """Move the robot to a calibration step's target, reaching it from ``step.meta["approach"]``'s side.
 
-    The last position on the step's line (its axis and group) this session is kept in
-    ``ctx.session``; a pre-position ``overshoot_m`` short of the target (along the axis, on the
+    The last position on the step's line (its axis and group) this session is kept in its
+    ``WhereItStands``; a pre-position ``overshoot_m`` short of the target (along the axis, on the
     approach side) is inserted unless the robot already comes from at least that far on that side.
     """
     direction = step.meta.get("approach")
     target = step.robot_target()
     line = (step.meta["axis"], step.meta["group"])
     value = float(step.meta["nominal"])
-    last = ctx.session.get("line_position")
+    memory = ctx.session_state(WhereItStands)
+    last = memory.line
     if direction is not None and not (last is not None and last[0] == line
                                       and (value - last[1]) * direction >= overshoot_m - _SLACK):
         along = np.zeros(3)
         along[axis_index] = -direction * overshoot_m
         ctx.move_robot(translated_in_frame(target, along).tolist())
     ctx.move_robot(target)
-    ctx.session["line_position"] = (line, value)
+    memory.line = (line, value)
 
 
 def note_line_position(ctx: StepContext, step: Step, value: float) -> None:
     """Record that the robot stands at ``value`` on the step's line (after a move made elsewhere)."""
-    ctx.session["line_position"] = ((step.meta["axis"], step.meta["group"]), float(value))
+    ctx.session_state(WhereItStands).line = ((step.meta["axis"], step.meta["group"]), float(value))
 
 
 def approach_table(ctx: StepContext, step: Step, speed: float, overshoot_rad: float) -> None:
@@ -84,9 +95,10 @@ def approach_table(ctx: StepContext, step: Step, speed: float, overshoot_rad: fl
     direction = step.meta.get("approach")
     angle = step.table_target()
     axis = step.meta["axis"]
-    last: Any = ctx.session.get("table_angle")
+    memory = ctx.session_state(WhereItStands)
+    last = memory.table
     if direction is not None and not (last is not None and last[0] == axis
                                       and (angle - last[1]) * direction >= overshoot_rad - _SLACK):
         ctx.turn_table(angle - direction * overshoot_rad, speed=speed)
     ctx.turn_table(angle, speed=speed)
-    ctx.session["table_angle"] = (axis, angle)
+    memory.table = (axis, angle)

@@ -2,8 +2,9 @@
 
 At the start of every session (a run or a resume) an ISO run reads the robot's identity from its
 controller, sets the payload the procedure states on it, runs or records the warm-up, and notes the
-operator; the first sample of the session carries that record (``reference["session"]``), so it is
-committed with the data it describes. The analysis gathers them (``sessions``).
+operator: a ``SessionConditions`` record, kept in the session's ``SessionRecord`` and handed to the engine
+with the session's first reading (``Reading.session``), which commits it with that sample as a run-level
+record. The analysis reads them all (``AnalysisContext.sessions``).
 """
 
 from __future__ import annotations
@@ -11,12 +12,14 @@ from __future__ import annotations
 import getpass
 import os
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
 
 from drivers import DeviceError
 from procedures.kinds._protocol import StepContext
+from procedures.store import SessionConditions
 
 OPERATOR_VARIABLE = "INSTRUMENT_OPERATOR"
 
@@ -78,7 +81,19 @@ def warm_up(ctx: StepContext, mode: str, duration_s: float, path: Sequence[Seque
     return {"mode": mode, "duration_s": float(duration_s), "ran_s": ran, "moves": moves}
 
 
-def sessions_of(references: Sequence[Mapping[str, Any] | None]) -> list[dict[str, Any]]:
-    """The session records carried by samples' references, oldest first."""
-    found = [dict(r["session"]) for r in references if r and isinstance(r.get("session"), Mapping)]
-    return sorted(found, key=lambda s: s.get("started") or 0.0)
+@dataclass
+class SessionRecord:
+    """A kind's memory of the test conditions this session started under (``StepContext.session_state``)."""
+
+    conditions: SessionConditions | None = None
+    pending: bool = False  # read, but not yet handed to the engine with a reading
+
+    def start(self, conditions: SessionConditions) -> None:
+        self.conditions, self.pending = conditions, True
+
+    def take(self) -> SessionConditions | None:
+        """The conditions, once: for the session's first reading (None after that)."""
+        if not self.pending:
+            return None
+        self.pending = False
+        return self.conditions

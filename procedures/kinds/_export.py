@@ -11,8 +11,8 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-from procedures.kinds._dynamic_export import DYNAMIC_KINDS, dynamic_figures
-from procedures.kinds._iso_analysis import POINT_FIGURES, figure_without_uncertainty
+from procedures.kinds.dynamic import DYNAMIC_KINDS, dynamic_figures
+from procedures.kinds.iso import POINT_FIGURES, figure_without_uncertainty
 
 SCHEMA = "opr-instrument-results/1"
 

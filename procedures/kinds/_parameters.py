@@ -10,7 +10,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from procedures._models import HookSpec
+from procedures.station import HookSpec
 
 AxisName = Literal["x", "y", "z"]
 

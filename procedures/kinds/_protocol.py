@@ -4,26 +4,46 @@ A kind plans a run as a fixed list of ``Step``s, brings the OPR to each step's p
 reads what the step measures (``measure``: its references and the pose from the frames, through
 a ``StepContext``), and turns the committed samples into results (``analyse``, through a narrow
 ``AnalysisContext``). The engine knows no kind by name; ``procedures.kinds`` registers them.
+
+A kind shows nothing itself: it declares what the report and the faces need to show its runs — a
+title from the parameters in force (``title``), the shape of its results (``result_shape``, by which
+``procedures.report`` finds the sections that show them), whether its runs are judged against ISO
+9283's test conditions (``iso_test_conditions``) and which figures a robot's history follows
+(``history_figures``).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from enum import StrEnum
 from pathlib import Path
 from typing import Any, Literal, Protocol, TypeVar
 
 from drivers.interferometer import Interferometer
 from drivers.robot import Robot
 from drivers.rotary_table import RotaryTable
-from procedures._models import StationFile
-from procedures._science import Compensator, Science
-from procedures._store import Sample
-from procedures._truth import TruthLog
 from procedures.kinds._parameters import MotionParameters, ProcedureBase
 from procedures.kinds._setups import Setup
+from procedures.station import Compensator, Science, StationFile, TruthLog
+from procedures.store import CorrectedPose, Pose, Reference, Sample, SessionConditions, SolvedPose
 
+S = TypeVar("S")
 DeviceRole = Literal["robot", "rotary_table", "interferometer"]  # the cameras serve every kind
+RESULTS_VERSION = 2  # the layout of the results the kinds write (docs/results.md); results stored before it have none
+
+
+class ResultShape(StrEnum):
+    """The shapes of results the built-in kinds write (docs/results.md); the report keys its sections on them.
+
+    A kind of a new family may declare a shape of its own (any string) and register a section for it
+    (``procedures.report.register_section``).
+    """
+
+    ISO_POSE = "iso_pose"  # figures per point of the ISO cube, test conditions, deviations
+    CALIBRATION = "calibration"  # a calibration record, its held-out evaluation and residuals per component
+    STABILISATION = "stabilisation"  # stabilisation time and overshoot per point and speed
+    PATH = "path"  # path accuracy, repeatability, cornering and velocity per speed
 
 
 @dataclass(frozen=True)
@@ -80,13 +100,14 @@ class Step:
 class PoseReading:
     """The OPR pose from one step's camera frames, or why there is none (``ok`` False, ``error``).
 
-    ``solved``: mean pose, spread, per-frame poses, residual; ``corrected``: after the calibration
-    records in force; ``frames``: saved frame files, relative to the run folder.
+    ``solved``: the pose as solved, with its quality; ``corrected``: after the calibration records in
+    force; ``crosses``: what the core said of each located cross; ``frames``: saved frame files, relative
+    to the run folder; ``attempts``: how many times the frames were grabbed and solved.
     """
 
     ok: bool
-    solved: dict[str, Any] | None = None
-    corrected: dict[str, Any] | None = None
+    solved: SolvedPose | None = None
+    corrected: CorrectedPose | None = None
     crosses: dict[str, Any] | None = None
     frames: list[str] | None = None
     t_measured: float | None = None
@@ -94,36 +115,41 @@ class PoseReading:
     error: str | None = None
 
     @property
-    def pose(self) -> list[float] | None:
+    def pose(self) -> Pose | None:
         """The best pose: corrected if a record was applied, else solved."""
         best = self.corrected or self.solved
-        return None if best is None else best["pose"]
+        return None if best is None else best.pose
 
 
 @dataclass(frozen=True)
 class Reading:
-    """What one step measured: the pose, and the references the kind read beside it (SI, JSON-able).
+    """What one step measured: the pose, and the references the kind read beside it (SI).
 
-    ``reference["value"]``, when present, is the reference the calibration compares against.
-    ``stream``: the move's pose stream (``_dynamic_stream.StreamRecord``) of a kind that measures in
-    motion; the engine stores it with the sample, in the same transaction.
+    ``reference.value``, when present, is the reference the calibration compares against.
+    ``stream``: the move's pose stream (``StreamRecord``) of a kind that measures in motion; ``session``:
+    the test conditions this session started under, handed back with the session's first reading. The
+    engine stores both with the sample, in the same transaction.
     """
 
     pose: PoseReading
-    reference: dict[str, Any]
+    reference: Reference = field(default_factory=Reference)
     stream: Any = None
+    session: SessionConditions | None = None
 
 
 class StepContext(Protocol):
     """What a kind's ``move`` and ``measure`` may use: the devices, motion at the run's speed,
-    the settle wait, and the frames → pose measurement (retries, saved frames, compensation).
-
-    ``session`` is the kind's memory for one session of the run (one ``execute()``): empty when a
-    run starts or resumes, so whatever a kind keeps there (an interferometer datum, say) is known
-    to be valid only for steps measured by this process since then.
+    the settle wait, the frames → pose measurement (retries, saved frames, compensation), and the
+    kind's memory for this session of the run (``session_state``).
     """
 
-    session: dict[str, Any]
+    def session_state(self, state: type[S]) -> S:
+        """The kind's memory for this session of the run (one ``execute()``): an instance of ``state``, a class
+        the kind (or a helper it calls) declares, made with no arguments at the session's first call and the
+        same object at every later one. A session starts empty (a run and each resume), so whatever a kind
+        keeps there (an interferometer datum, say) is known to be valid only for steps measured by this
+        process since then."""
+        ...
 
     def wait(self, seconds: float) -> None:
         """Sleep (an abort cuts it short)."""
@@ -188,6 +214,8 @@ class AnalysisContext:
     truth: TruthLog | None = None
     streams: Callable[[Sequence[int] | None], dict[int, Any]] | None = None
     """The run's stored pose streams by step (``RunStore.streams``), of the given steps or all."""
+    sessions: Sequence[SessionConditions] = ()
+    """The test conditions of each session of the run, oldest first (``RunStore.sessions``)."""
 
 
 @dataclass(frozen=True)
@@ -244,10 +272,25 @@ class ProcedureKind(Protocol[P]):
         """The run's results from its committed samples (failed ones included, ``ok`` False)."""
         ...
 
-    def report_html(self, results: Mapping[str, Any]) -> str:
-        """The results section of the run's HTML report."""
+    @property
+    def result_shape(self) -> str:
+        """The shape of the results ``analyse`` writes (a ``ResultShape`` for the built-in kinds)."""
         ...
 
-    def summary_lines(self, results: Mapping[str, Any]) -> list[str]:
-        """A few lines of results for ``instrument show``."""
+    @property
+    def iso_test_conditions(self) -> bool:
+        """Whether a run is judged against ISO 9283's test conditions: the report heads its banner
+        "Deviations from ISO 9283", and a run stored before its results recorded the conditions and
+        deviations gets those its parameters, station snapshot and results show."""
+        ...
+
+    @property
+    def history_figures(self) -> tuple[str, ...]:
+        """The figures per point ``instrument history`` and the web view's robot history follow (keys of
+        the ISO figures, ``rp_l`` ...); empty: the kind's runs are not in a robot's history."""
+        ...
+
+    def title(self, parameters: Mapping[str, Any], results: Mapping[str, Any] | None) -> str:
+        """What a run measured, for the report's title: from the parameters it ran with (as stored, so
+        ``--set cycles=3`` gives 3 cycles) and, once it has finished, its results."""
         ...

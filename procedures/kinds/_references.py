@@ -24,6 +24,7 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
+from instrument import ARCSEC
 from instrument.environment import (
     HENE_VACUUM_WAVELENGTH_M,
     AirConditions,
@@ -33,7 +34,6 @@ from instrument.environment import (
     wavelength_compensation,
 )
 
-ARCSEC = math.pi / (180.0 * 3600.0)
 HENE_WAVELENGTH_M = HENE_VACUUM_WAVELENGTH_M
 AIR_TEMPERATURE_HALF_WIDTH_K = 0.2
 PRESSURE_HALF_WIDTH_PA = 100.0

@@ -11,8 +11,8 @@ from dataclasses import dataclass
 from typing import Protocol
 
 from drivers.rotary_table import RotaryTable
-from procedures._station import Operator
 from procedures.kinds._parameters import AxisName
+from procedures.station import Operator
 
 ON_ROBOT = "robot"  # the Operator's name for the OPR on the flange (``mount_opr("robot")``)
 

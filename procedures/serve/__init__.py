@@ -1,13 +1,13 @@
 """``instrument serve``: the live web view of the run store and the OPC UA server for the robot cell.
 
-Public names: ``create_app`` and ``WebSettings`` (the FastAPI app), ``StoreReader`` (read access to
-the store), ``write_live_frames`` (re-exported from ``procedures._live_frames``: what the engine calls
-after each pose so the live page shows the frames), ``InstrumentOpcUa`` and ``OpcUaSettings``,
+Public names: ``create_app`` and ``WebSettings`` (the FastAPI app, one router per resource), ``StoreReader``
+(read access to the store), ``write_live_frames`` (re-exported from ``procedures.engine``: what the engine
+calls after each pose so the live page shows the frames), ``InstrumentOpcUa`` and ``OpcUaSettings``,
 ``RunLauncher`` (runs as child processes), ``serve`` and ``ServeOptions`` (both servers in one event
 loop). Pages, API and security: docs/web_view.md; the OPC UA address space: docs/opcua.md.
 """
 
-from procedures._live_frames import write_live_frames
+from procedures.engine import write_live_frames
 from procedures.serve._app import WebSettings, create_app
 from procedures.serve._frames import latest_frames, stripe_lines
 from procedures.serve._launcher import LaunchRefused, RunLauncher, parse_overrides

@@ -7,7 +7,7 @@ Two sources, newest first:
 2. the frames the engine saves as ``.npy`` files (``save_frames: always``, or ``failed`` for the
    poses that failed), listed in each sample's ``frames``.
 
-A cross is stored as the measurement core reports it (``procedures._science``): ``center_px`` (x, y),
+A cross is stored as the measurement core reports it (``procedures.station._science``): ``center_px`` (x, y),
 ``angle_rad`` = (φh + φv) / 2 and ``perpendicularity_rad`` = φv − φh, where φh turns the horizontal
 stripe from +x toward +y and φv the vertical stripe from +y toward −x. The lines are drawn from these.
 """
@@ -22,8 +22,9 @@ from typing import Any
 
 import numpy as np
 
-from procedures._live_frames import DEFAULT_SCALE, LIVE_DIR, LIVE_INDEX, SCREENS, png_of
-from procedures._store import Sample
+from instrument import SCREENS
+from procedures.engine import DEFAULT_SCALE, LIVE_DIR, LIVE_INDEX, png_of
+from procedures.store import Sample
 
 
 def stripe_lines(cross: Mapping[str, Any], width: float, height: float) -> dict[str, Any]:

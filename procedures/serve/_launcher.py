@@ -24,10 +24,9 @@ from typing import Any
 
 import yaml
 
-from procedures._errors import ConfigError, RunLocked, StateConflict
-from procedures._loading import load_procedure, resolve_procedure_path
-from procedures._run_state import RunState
-from procedures._store import RunStore
+from procedures.engine import load_procedure, resolve_procedure_path
+from procedures.station import ConfigError, RunLocked, StateConflict
+from procedures.store import RunState, RunStore
 
 
 class LaunchRefused(ValueError):

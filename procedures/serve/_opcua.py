@@ -21,8 +21,9 @@ from typing import Any
 
 from asyncua import Node, Server, ua
 
+from procedures.report import iso_points
 from procedures.serve._launcher import LaunchRefused, RunLauncher
-from procedures.serve._reader import StoreReader, iso_points
+from procedures.serve._reader import StoreReader
 
 NAMESPACE = "urn:opr-repeatability:instrument"
 ROOT = "Instrument"

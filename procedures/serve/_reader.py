@@ -19,12 +19,10 @@ from typing import Any, TypeVar
 
 import numpy as np
 
-from procedures._run_state import RunState
-from procedures._store import RunStore, Sample
+from procedures.store import RunState, RunStore, Sample
 
 T = TypeVar("T")
 
-ISO_PROCEDURE = "iso9283_repeatability"
 ACTIVE_STATES = (RunState.RUNNING, RunState.PAUSED, RunState.QUEUED)
 
 
@@ -64,8 +62,7 @@ def run_summary(run: dict[str, Any]) -> dict[str, Any]:
 def point_of(sample: Sample) -> dict[str, Any]:
     """One committed sample as the live page plots it: the attained pose (corrected when the run
     corrects, else solved; m and rad, ``[x, y, z, a, b, c]`` in M) and its quality."""
-    best = sample.corrected or sample.solved or {}
-    meta = sample.meta or {}
+    meta = sample.meta
     return {
         "step": sample.step_index,
         "key": sample.step_key,
@@ -74,8 +71,8 @@ def point_of(sample: Sample) -> dict[str, Any]:
         "cycle": meta.get("cycle"),
         "ok": sample.ok,
         "error": sample.error,
-        "pose": best.get("pose"),
-        "residual_rms": (sample.solved or {}).get("residual_rms"),
+        "pose": None if sample.pose is None else list(sample.pose),
+        "residual_rms": None if sample.quality is None else sample.quality.residual_rms,
         "time": sample.t_committed,
     }
 
@@ -151,7 +148,7 @@ class StoreReader:
         """The newest stored pose stream of a run measured in motion (None: it has none), for the live
         page's panel: ``step``, ``key``, ``t`` (s from the robot's done signal), ``distance`` (m, to the
         attained pose: the mean of the stream's last fifth), ``rate_hz``, ``dropped``, ``poses``."""
-        from procedures.kinds._dynamic_stream import StreamRecord
+        from procedures.kinds import StreamRecord
 
         def compute() -> dict[str, Any] | None:
             with self._lock:
@@ -199,21 +196,23 @@ class StoreReader:
         """The finished ISO 9283 runs of one robot (``robot_of(run)["key"]``: its serial when the runs
         carry it), oldest first: per point n, RP and AP with their confidence intervals (SI), and
         ``uncertainty`` (key → U, or the interval's half-width) and ``changed`` (key → Δ from the
-        robot's previous run, where it exceeds both runs' uncertainties combined; ``instrument history``)."""
-        from procedures._cli_results import ISO_FIGURES, changes, iso_rows
+        robot's previous run, where it exceeds both runs' uncertainties combined; ``instrument history``).
+        The runs are those of the kinds that declare ``history_figures``."""
+        from procedures.report import changes, history_figures, history_procedures, iso_points, iso_rows
 
         def compute() -> list[dict[str, Any]]:
             history: list[dict[str, Any]] = []
             previous: dict[str, dict[str, Any]] = {}
+            followed, keys = history_procedures(), history_figures()
             for summary in reversed(self.runs()):
-                if summary["robot"]["key"] != robot_key or summary["procedure"] != ISO_PROCEDURE:
+                if summary["robot"]["key"] != robot_key or summary["procedure"] not in followed:
                     continue
                 if summary["state"] != RunState.FINISHED:
                     continue
                 results = self.run(summary["id"]).get("results") or {}
                 points = iso_points(results)
-                for row in iso_rows(results):
-                    figures = {key: row[key] for key, *_ in ISO_FIGURES}
+                for row in iso_rows(results, keys):
+                    figures = {key: row[key] for key in keys}
                     if row["point"] in points:
                         points[row["point"]]["uncertainty"] = {key: fig["u"] for key, fig in figures.items()
                                                                if fig and fig["u"] is not None}
@@ -232,38 +231,9 @@ def progress_of(samples: list[Sample], total: int | None) -> dict[str, Any]:
     remaining = max((total or 0) - len(samples), 0)
     return {
         "phase": newest.phase if newest else None,
-        "cycle": (newest.meta or {}).get("cycle") if newest else None,
+        "cycle": newest.meta.get("cycle") if newest else None,
         "label": newest.label if newest else None,
         "failed": sum(1 for s in samples if not s.ok),
         "eta_s": pace * remaining if pace is not None else None,
         "last_time": newest.t_committed if newest else None,
     }
-
-
-def iso_points(results: dict[str, Any]) -> dict[str, dict[str, Any]]:
-    """Per ISO point of an ``iso9283`` results dict: ``n`` and every scalar figure and interval of its
-    statistics (``rp_l``, ``rp_l_ci``, ``ap_p`` ..., SI), without the pose lists. Where the results carry
-    figure objects (docs/results.md) their value replaces the statistic (it is the one the report states:
-    noise bias corrected) and ``<figure>_u`` is its expanded uncertainty U (k = 2)."""
-    points: dict[str, dict[str, Any]] = {}
-    if results.get("kind") != "iso9283":
-        return points
-    for label in results.get("order", []):
-        entry = results["points"].get(label) or {}
-        stats = entry.get("stats") or {}
-        figures: dict[str, Any] = {"n": entry.get("n")}
-        for key, value in stats.items():
-            if key in ("barycentre", "commanded"):
-                continue
-            if isinstance(value, (int, float)) or (isinstance(value, list) and len(value) == 2):
-                figures[key] = value
-        reported = (((results.get("figures") or {}).get("points") or {}).get(label)) or {}
-        for key, figure in reported.items():
-            if isinstance(figure, dict) and isinstance(figure.get("value"), (int, float)):
-                figures[key] = figure["value"]
-                if isinstance(figure.get("expanded_uncertainty"), (int, float)):
-                    figures[f"{key}_u"] = figure["expanded_uncertainty"]
-        if entry.get("error"):
-            figures["error"] = entry["error"]
-        points[label] = figures
-    return points

@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 
 from sim_devices._config import checked_fields
-from sim_devices._transforms import rotvec_to_matrix
+from sim_devices._transforms import ARCSEC, rotvec_to_matrix
 
 AXIS_NAMES = ("x", "y", "z")
 _AXIS = {"x": 0, "y": 1, "z": 2}
@@ -50,7 +50,6 @@ _NOMINAL_UV = {
 # third axis. Fan names say which two axes it contains.
 FANS = {"x": ("xy", "xz"), "y": ("yz", "yx"), "z": ("zx", "zy")}
 _FAN_NORMAL_AXIS = {"xy": 2, "xz": 1, "yz": 0, "yx": 2, "zx": 1, "zy": 0}
-_ARCSEC = np.pi / 180.0 / 3600.0
 
 
 @dataclass
@@ -80,12 +79,12 @@ class OpticsConfig:
     screen_distance_std: float = 1.5e-3  # the drawing's distance vs the built one
     screen_offset_std: float = 20e-6  # in-plane position of the (u, v) origin
     screen_tilt_std: float = float(np.radians(0.1))  # out of plane
-    screen_twist_std: float = 6 * _ARCSEC  # about the normal
+    screen_twist_std: float = 6 * ARCSEC  # about the normal
     # cameras: residual errors of the nominal pixel → screen calibration
     scale_error_std: float = 4e-4
     anisotropy_std: float = 2e-4
     skew_std: float = 1e-4  # rad
-    rotation_error_std: float = 5 * _ARCSEC
+    rotation_error_std: float = 5 * ARCSEC
     offset_error_std: float = 15e-6  # m on the screen
     perspective_std: float = 3e-7  # 1/px: relative scale change per pixel across the field
     distortion_k1_range: tuple[float, float] = (2e-4, 5e-4)  # |k1|, sign random; ρ = r / r_norm
@@ -93,9 +92,9 @@ class OpticsConfig:
     distortion_r_norm_px: float = 700.0
     distortion_centre_std_px: float = 8.0
     # OPR lasers (true properties of the emitters)
-    beam_tilt_std: float = 8 * _ARCSEC
-    fan_nonperpendicularity_std: float = 10 * _ARCSEC
-    emitter_roll_std: float = 5 * _ARCSEC
+    beam_tilt_std: float = 8 * ARCSEC
+    fan_nonperpendicularity_std: float = 10 * ARCSEC
+    emitter_roll_std: float = 5 * ARCSEC
     emitter_offset_std: float = 10e-6
     stripe_sigma: float = 0.31e-3  # m on the screen (≈ 2 px)
     stripe_sigma_spread: float = 0.05  # relative, per emitter

@@ -34,8 +34,7 @@ from typing import Any
 import numpy as np
 
 from sim_devices._config import checked_fields
-
-ARCSEC = math.pi / (180.0 * 3600.0)
+from sim_devices._transforms import ARCSEC
 
 
 class CommandRefused(Exception):

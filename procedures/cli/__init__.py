@@ -1,0 +1,22 @@
+"""The terminal face: the ``instrument`` command line.
+
+What it offers: ``main(argv)`` (the ``instrument`` script's entry point, ``procedures.cli:main``; also
+``python -m procedures.cli``), ``build_parser()``, the error log's name (``ERROR_LOG``), and the pieces a
+run's terminal session is made of: ``drive`` (a run or resume from start to its last line), the live
+``Display``, the pause prompt (``ask_pause_key``), the signal handling (``signals_control``,
+``detach_at_once``), where ``--station sim`` cells live (``cell_directory``) and how ``instrument sim``
+lists a cell's endpoints (``endpoint_lines``).
+
+One module per command (``_run``, ``_resume``, ``_runs``, ``_show``, ``_history``, ``_report``,
+``_export``, ``_validate``, ``_locate``, ``_sim``, ``_serve``), with what they share in ``_common`` and the
+progress display in ``_display``. It stands on the engine, the report and the store (and below); the
+``serve`` command starts the web face (``procedures.serve``), which never imports this package.
+"""
+
+from procedures.cli._common import ask_pause_key, cell_directory, detach_at_once, drive, signals_control
+from procedures.cli._display import Display
+from procedures.cli._main import ERROR_LOG, build_parser, main
+from procedures.cli._sim import endpoint_lines
+
+__all__ = ["ERROR_LOG", "Display", "ask_pause_key", "build_parser", "cell_directory", "detach_at_once", "drive",
+           "endpoint_lines", "main", "signals_control"]

@@ -1,0 +1,93 @@
+"""``instrument history --robot SERIAL``: one robot's RP and AP per point over time, changes flagged.
+
+Every finished ISO 9283 run of the robot (the serial its controller reported at run start) in time
+order, per point: RP_l, RP_a/b/c and AP_P with their uncertainty (the expanded uncertainty U when the
+results carry it, else the half-width of the sampling interval; see ``procedures.report``). The runs
+and figures are those of the kinds that declare ``history_figures``.
+A figure is flagged when it moved from the robot's previous run by more than the two runs'
+uncertainties combined, ``|Δ| > √(u₁² + u₂²)``: a change the measurement itself cannot explain.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from typing import Any
+
+from procedures.cli._common import READ_EXIT_CODES, add_runs_dir, open_store
+from procedures.report import changes, figure_columns, history_figures, history_procedures, iso_rows, shown
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "history", help="one robot's RP/AP per point over time (by serial), changes beyond the uncertainty flagged",
+        description="Every finished ISO 9283 run of one robot, oldest first, per point: RP_l, RP_a/b/c and AP_P "
+                    "with their uncertainty, and a flag (!) where a figure moved from the previous run by more "
+                    "than both runs' uncertainties combined. The robot is named by the serial number its "
+                    "controller reported (instrument runs shows it).", epilog=READ_EXIT_CODES)
+    parser.add_argument("--robot", required=True, metavar="SERIAL", help="the robot's serial number")
+    parser.add_argument("--json", action="store_true", help="the history as one JSON document (SI units)")
+    add_runs_dir(parser)
+    parser.set_defaults(handler=run)
+
+
+def robot_history(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """The history of one robot's runs (whole rows, oldest first): per point, one entry per run."""
+    points: dict[str, list[dict[str, Any]]] = {}
+    keys = history_figures()
+    for run in runs:
+        for row in iso_rows(run.get("results") or {}, keys):
+            entries = points.setdefault(row["point"], [])
+            previous = entries[-1]["figures"] if entries else None
+            figures = {key: row[key] for key in keys}
+            entries.append({"run_id": run["id"], "created": run["created"], "n": row["n"], "figures": figures,
+                            "changed": changes(previous, figures)})
+    identity = runs[-1] if runs else {}
+    return {"serial": identity.get("robot_serial"), "manufacturer": identity.get("robot_manufacturer"),
+            "model": identity.get("robot_model"), "runs": len(runs), "points": points}
+
+
+def run(args: argparse.Namespace) -> int:
+    with open_store(args) as store:
+        runs = store.robot_runs(args.robot, procedures=history_procedures())
+        known = [r["serial"] for r in store.robots()] if not runs else []
+    history = robot_history(runs)
+    if args.json:
+        print(json.dumps(history))
+        return 0
+    if not runs:
+        others = f" (robots in the store: {', '.join(known)})" if known else " (no run in the store records a robot)"
+        print(f"no finished ISO 9283 run of robot {args.robot}{others}")
+        return 0
+    print(f"{history['manufacturer'] or ''} {history['model'] or ''} serial {history['serial']}: "
+          f"{len(runs)} finished ISO 9283 runs".strip())
+    flagged = 0
+    columns = figure_columns(history_figures())
+    for point, entries in history["points"].items():
+        print(f"\n{point}")
+        table = [["date", "run", "n", *[f"{name} ({unit})" for _, name, unit, _ in columns], ""]]
+        for entry in entries:
+            changed = entry["changed"]
+            flagged += bool(changed)
+            table.append([time.strftime("%Y-%m-%d %H:%M", time.localtime(entry["created"])), entry["run_id"][:8],
+                          str(entry["n"]), *[shown(entry["figures"][key], scale) + (" !" if key in changed else "")
+                                             for key, _, _, scale in columns],
+                          _changed_text(changed)])
+        widths = [max(len(row[i]) for row in table) for i in range(len(table[0]))]
+        for row in table:
+            print("  ".join(cell.ljust(w) if i < 2 or i == len(row) - 1 else cell.rjust(w)
+                            for i, (cell, w) in enumerate(zip(row, widths))).rstrip())
+    print("\n± : expanded uncertainty U (k = 2), or the half-width of the 95 % interval where a run has no U; "
+          "! : moved from the previous run by more than both uncertainties combined")
+    if flagged:
+        print(f"{flagged} point-runs changed beyond their uncertainty")
+    return 0
+
+
+def _changed_text(changed: dict[str, float]) -> str:
+    parts = []
+    for key, name, unit, scale in figure_columns(history_figures()):
+        if key in changed:
+            parts.append(f"{name} {changed[key] * scale:+.2f} {unit}")
+    return ("changed: " + ", ".join(parts)) if parts else ""

@@ -1,0 +1,67 @@
+"""``instrument resume RUN``: continue a paused, failed or interrupted run from its last committed sample."""
+
+from __future__ import annotations
+
+import sys
+
+from procedures.cli._common import (
+    RUN_EXIT_CODES,
+    Display,
+    add_display,
+    add_runs_dir,
+    add_seed,
+    console_pause_handler,
+    detach_at_once,
+    drive,
+    open_store,
+    seconds_value,
+    station_for,
+)
+from procedures.station import RunLocked
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "resume", help="continue an interrupted or paused run",
+        description="Continue a paused, failed or interrupted run from its last committed sample: the steps "
+                    "stored as measured are skipped, failed ones measured again.", epilog=RUN_EXIT_CODES)
+    parser.add_argument("run_id", metavar="RUN", help="run id (a unique prefix is enough)")
+    parser.add_argument("--station", default=None,
+                        help="station YAML (default: the run's station snapshot), or 'sim' for a new simulated cell")
+    add_seed(parser, None)
+    parser.add_argument("--pause-timeout", type=seconds_value, default=3600.0,
+                        help="seconds a paused run waits before it is left paused (non-interactive)")
+    add_runs_dir(parser)
+    add_display(parser)
+    parser.set_defaults(handler=run)
+
+
+def run(args) -> int:
+    from procedures.engine import open_engine
+
+    with open_store(args) as store:
+        try:
+            stored = store.get_run(args.run_id)
+        except KeyError as exc:
+            print(exc.args[0], file=sys.stderr)
+            return 1
+        # Checked before a simulated cell is started for nothing; open_engine takes the lease for real.
+        holder = store.lease_holder(stored["id"])
+        if holder is not None:
+            raise RunLocked(f"run {stored['id']} is already being run by pid {holder['pid']} on {holder['host']}; "
+                            "wait for it to end or stop that process")
+    seed = args.seed if args.seed is not None else _stored_seed(stored)
+    mode = "jsonl" if args.jsonl else "quiet" if args.quiet else "bar"
+    display = Display(mode)
+    with station_for(args.station, args.runs_dir, seed) as station:
+        with open_engine(args.runs_dir, run_id=stored["id"], station=station, listener=display,
+                         pause_handler=detach_at_once if args.jsonl else
+                         lambda engine: console_pause_handler(engine, display),
+                         pause_timeout_s=args.pause_timeout, store=args.store) as engine:
+            return drive(engine, args, display)
+
+
+def _stored_seed(run: dict) -> int:
+    """The simulated cell's seed in the run's station snapshot (0 if it has none usable)."""
+    seed = ((run["station"] or {}).get("simulation") or {}).get("seed")
+    return seed if isinstance(seed, int) and 0 <= seed < 2**32 else 0
