@@ -59,6 +59,10 @@ def _worker_index() -> int | None:
 
 
 def pytest_configure(config: pytest.Config) -> None:
+    # Output cut to the terminal's width must not depend on where the suite runs (a developer's
+    # narrow terminal, or xdist's workers, which get COLUMNS=80): every test and the processes it
+    # starts see a 200-column terminal unless it asks for another.
+    os.environ["COLUMNS"] = "200"
     index = _worker_index()
     if index is not None:
         base = os.environ.get(LOOPBACK_BLOCK_ENV, "127.0.0").split(".")
