@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from drivers import DeviceFault
+from drivers import DeviceConnectionError, DeviceFault
 from drivers.camera import Frame, GrabFailed
 from drivers.interferometer import DatumLost, EnvironmentReading, FeedGap, HeadOptics
 from drivers.robot import MotionEnvelope, ProtectiveStop, RobotIdentity, RobotState
@@ -199,6 +199,7 @@ class FakeRobot:
         self.protective_stop = False
         self.stops = 0
         self.connected = False
+        self.unreachable = False  # a controller that refuses connections (open() raises)
         self.envelope = MotionEnvelope.from_dict(station_dict()["envelope"])
         self.tcp = np.zeros(6)
         self.payload = (0.0, np.zeros(3))
@@ -221,6 +222,8 @@ class FakeRobot:
         return self.tcp.copy()
 
     def open(self) -> None:
+        if self.unreachable:
+            raise DeviceConnectionError("robot", "connect", "not reachable: [Errno 111] Connection refused")
         self.connected = True
 
     def close(self) -> None:

@@ -477,3 +477,32 @@ def test_a_hanging_hook_does_not_hold_up_the_run_and_every_event_is_accounted_fo
     failed = [e["message"] for e in events if e["kind"] == "hook_failed"]
     assert len(failed) == 17  # run_started, 15 × point_measured, run_finished: each delivered or logged
     assert any("did not return within 1.0 s" in m for m in failed)
+
+
+def test_a_resume_that_cannot_start_leaves_the_run_as_it_was(setup):
+    """A paused run resumed while its robot is unreachable once became FAILED for good ('dry run failed:
+    robot: not reachable'); it stays PAUSED, the reason logged, and resumes later to the end."""
+    from procedures.station import ResumeRefused
+
+    tmp_path, station, cell = setup
+    proc = _procedure(tmp_path, "iso9283_repeatability", cycles=2)
+
+    def listener(event):
+        if event["event"] == "progress" and event["done"] == 4:
+            engine.request_pause("end of shift")
+
+    with _engine(tmp_path, station, cell, proc, listener=listener, pause_timeout_s=0.1) as engine:
+        assert engine.execute() == "PAUSED"
+        run_id = engine.run_id
+    cell.robot.unreachable = True
+    with _engine(tmp_path, None, cell, run_id=run_id) as engine:
+        with pytest.raises(ResumeRefused, match=r"was not resumed \(it stays PAUSED\): dry run failed"):
+            engine.execute()
+        run = engine.store.get_run(run_id)
+        assert run["state"] == "PAUSED" and run["reason"] == "end of shift"
+        assert [e["kind"] for e in engine.store.events(run_id)][-1] == "resume_refused"
+    assert cell.moves == 4
+    cell.robot.unreachable = False
+    with _engine(tmp_path, None, cell, run_id=run_id) as engine:
+        assert engine.execute() == "FINISHED"
+        assert [s.step_index for s in engine.store.samples(run_id)] == list(range(15))

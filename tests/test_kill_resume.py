@@ -1,7 +1,13 @@
-"""kill -9 at a random (seeded) moment of each procedure, then ``instrument resume --station sim``
-to FINISHED: nothing committed is lost, duplicated or changed, the calibration's datum is
-re-established where the kill left a group half done, and the report keeps the truth of the
-samples measured before the crash (the new cell gets its own folder; the old truth log is kept)."""
+"""kill -9 at a random (seeded) moment of each procedure, then ``instrument resume`` to FINISHED:
+nothing committed is lost, duplicated or changed, the calibration's datum is re-established where
+the kill left a group half done, and the report keeps the truth of the samples measured before the
+crash (the new cell gets its own folder; the old truth log is kept).
+
+The displacement calibration is killed exactly at a repeat boundary: a resumed cell that replayed
+the first cell's noise once made repeat 2 bit-identical to repeat 1, and the analysis failed on the
+zero noise floor at every resume. The new cell is session 1 of the run: the same physics, fresh
+noise. The ISO run is resumed with a plain ``instrument resume RUN``, which starts a simulated cell
+by itself for a run measured on one (it once tried the dead cell's address and FAILED the run)."""
 
 from __future__ import annotations
 
@@ -17,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import psutil
 import pytest
+import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.slow
@@ -67,14 +74,16 @@ def test_kill_9_at_a_random_moment_then_resume_to_finished(tmp_path, number, nam
     child = subprocess.Popen([sys.executable, "-m", "procedures.cli", "run", str(procedure), "--station", "sim",
                               "--seed", "5", "--runs-dir", str(runs), "--jsonl"], cwd=ROOT,
                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    kill_after = int(rng.integers(2, 8))  # committed samples, then a random moment within the next step
+    # Committed samples, then a random moment within the next step; the calibration right after repeat 1.
+    at_boundary = name == "displacement_calibration"
+    kill_after = 5 if at_boundary else int(rng.integers(2, 8))
     try:
         deadline = time.monotonic() + 120
         while len(_samples(runs / "runs.sqlite")) < kill_after:
             assert child.poll() is None, child.stderr.read()
             assert time.monotonic() < deadline, "the run made no progress"
             time.sleep(0.01)
-        time.sleep(float(rng.uniform(0.0, 0.5)))
+        time.sleep(0.0 if at_boundary else float(rng.uniform(0.0, 0.5)))
         _kill_with_descendants(child)
     finally:
         if child.poll() is None:
@@ -88,7 +97,8 @@ def test_kill_9_at_a_random_moment_then_resume_to_finished(tmp_path, number, nam
     (first_cell,) = (runs / "sim").iterdir()
     truth_before = (first_cell / "truth.jsonl").read_bytes()
 
-    resumed = subprocess.run([sys.executable, "-m", "procedures.cli", "resume", run_id, "--station", "sim",
+    station = [] if name == "iso9283_repeatability" else ["--station", "sim"]
+    resumed = subprocess.run([sys.executable, "-m", "procedures.cli", "resume", run_id, *station,
                               "--runs-dir", str(runs), "--jsonl"], cwd=ROOT, capture_output=True, text=True,
                              timeout=240)
     assert resumed.returncode == 0, resumed.stderr[-3000:]
@@ -106,6 +116,10 @@ def test_kill_9_at_a_random_moment_then_resume_to_finished(tmp_path, number, nam
     assert "lease_taken_over" in kinds  # the dead process's lease, judged stale
     cells = sorted((runs / "sim").iterdir())
     assert len(cells) == 2 and (first_cell / "truth.jsonl").read_bytes()[: len(truth_before)] == truth_before
+    (second_cell,) = [cell for cell in cells if cell != first_cell]
+    sessions = [yaml.safe_load((cell / "station.yaml").read_text())["simulation"]["session"]
+                for cell in (first_cell, second_cell)]
+    assert sessions == [0, 1]  # the resumed cell: the same seed, its own noise
 
     # The truth of every sample, before and after the crash, reaches the results.
     if name == "iso9283_repeatability":

@@ -232,10 +232,11 @@ def calibration_files(paths: list[str]) -> list[str]:
 
 
 @contextmanager
-def station_for(station: str | None, runs_dir: Path, seed: int, calibration: list[str] | None = None
-                ) -> Iterator[str | None]:
+def station_for(station: str | None, runs_dir: Path, seed: int, calibration: list[str] | None = None,
+                session: int = 0) -> Iterator[str | None]:
     """``sim`` starts the simulated cell for the run (its files kept in a folder of its own under the runs
-    folder); ``calibration``: the records the cell's station puts in force (``--calibration``)."""
+    folder); ``calibration``: the records the cell's station puts in force (``--calibration``);
+    ``session``: which start of a cell this is for the run (a resumed run's cell draws fresh noise)."""
     records = calibration_files(calibration or [])
     if records and station != "sim":
         raise RunError("--calibration goes with --station sim; a station file names its records in "
@@ -246,7 +247,7 @@ def station_for(station: str | None, runs_dir: Path, seed: int, calibration: lis
     from sim_devices.cell import SimCell
 
     directory = cell_directory(runs_dir)
-    cell = SimCell(seed=seed, directory=directory)
+    cell = SimCell(seed=seed, directory=directory, session=session)
     try:
         cell.start()
     except Exception as exc:  # the twins' own message, without their traceback

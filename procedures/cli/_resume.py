@@ -27,7 +27,8 @@ def register(subparsers) -> None:
                     "stored as measured are skipped, failed ones measured again.", epilog=RUN_EXIT_CODES)
     parser.add_argument("run_id", metavar="RUN", help="run id (a unique prefix is enough)")
     parser.add_argument("--station", default=None,
-                        help="station YAML (default: the run's station snapshot), or 'sim' for a new simulated cell")
+                        help="station YAML, or 'sim' for a new simulated cell (default: a run measured on a simulated "
+                             "cell gets a new one; any other run its station snapshot)")
     add_seed(parser, None)
     parser.add_argument("--pause-timeout", type=seconds_value, default=3600.0,
                         help="seconds a paused run waits before it is left paused (non-interactive)")
@@ -50,15 +51,31 @@ def run(args) -> int:
         if holder is not None:
             raise RunLocked(f"run {stored['id']} is already being run by pid {holder['pid']} on {holder['host']}; "
                             "wait for it to end or stop that process")
+    simulation = (stored["station"] or {}).get("simulation") or {}
+    station_arg = args.station
+    if station_arg is None and simulation:
+        station_arg = "sim"  # its cell ended with the session that measured it: a new one, as --station sim
     seed = args.seed if args.seed is not None else _stored_seed(stored)
+    session = _next_session(simulation) if station_arg == "sim" else 0
     mode = "jsonl" if args.jsonl else "quiet" if args.quiet else "bar"
     display = Display(mode)
-    with station_for(args.station, args.runs_dir, seed) as station:
+    if station_arg == "sim" and args.station is None and not args.quiet and not args.jsonl:
+        print(f"run {stored['id']} was measured on a simulated cell: starting a new one (seed {seed}, session "
+              f"{session})", file=sys.stderr)
+    with station_for(station_arg, args.runs_dir, seed, session=session) as station:
         with open_engine(args.runs_dir, run_id=stored["id"], station=station, listener=display,
                          pause_handler=detach_at_once if args.jsonl else
                          lambda engine: console_pause_handler(engine, display),
                          pause_timeout_s=args.pause_timeout, store=args.store) as engine:
             return drive(engine, args, display)
+
+
+def _next_session(simulation: dict) -> int:
+    """The session number of the next simulated cell of a run: one more than every cell it was measured on
+    (each leaves its truth log in the snapshot), so the new cell's noise is its own."""
+    recorded = simulation.get("session")
+    cells = len(simulation.get("earlier_truth_logs") or []) + (1 if simulation.get("truth_log") else 0)
+    return max(cells, recorded + 1 if isinstance(recorded, int) and recorded >= 0 else 0)
 
 
 def _stored_seed(run: dict) -> int:

@@ -39,6 +39,7 @@ from procedures.station import (
     DryRunFailed,
     Event,
     InputRefused,
+    ResumeRefused,
     RunAborted,
     RunError,
     Science,
@@ -213,6 +214,7 @@ class RunEngine:
         self.session_failures = 0
         last_failure = ""
         self.ending = False
+        started = False  # whether this session has changed the run's state yet
         try:
             self.science.configure(self.station.model)
             self.plan = self.kind.plan(self.params, self.station.model)
@@ -228,8 +230,11 @@ class RunEngine:
             if resuming:
                 reason = f"resumed after {len(measured)} measured samples" + (
                     f"; {len(to_repeat)} failed poses to measure again" if to_repeat else "")
+                self.dry_run(measured)  # before the state changes: a resume that cannot start leaves it alone
+            started = True
             self._set_state(RunState.RUNNING, hook="run_resumed" if resuming else "run_started", reason=reason)
-            self.dry_run(measured)
+            if not resuming:
+                self.dry_run(measured)
             if "robot" in self.kind.devices(self.params):
                 self._record_robot_identity(run)
             for step in self.plan:
@@ -260,20 +265,33 @@ class RunEngine:
             self._set_state(RunState.FINISHED, hook="run_finished")
         except _Detached:
             pass
-        except DryRunFailed as exc:
-            self._end(RunState.FAILED, str(exc), "run_failed", stop_devices=False)
-        except (RunAborted, KeyboardInterrupt) as exc:
-            self._end(RunState.ABORTED, str(exc) or "interrupted", "run_aborted")
         except Exception as exc:
-            expected = isinstance(exc, (DeviceError, RunError))
-            if not expected:  # a bug or an unforeseen failure: the operator gets one line, the log the traceback
-                self._log("traceback", traceback.format_exc())
-            self._end(RunState.FAILED, str(exc) if expected else f"{type(exc).__name__}: {exc}", "run_failed")
+            if started or not resuming or isinstance(exc, (RunAborted, KeyboardInterrupt)):
+                self._end_with(exc)
+            else:  # nothing was moved, nothing changed: the run stays as it was, the reason logged
+                why = str(exc) if isinstance(exc, (DeviceError, RunError)) else f"{type(exc).__name__}: {exc}"
+                self._log("resume_refused", why)
+                raise ResumeRefused(f"run {self.run_id} was not resumed (it stays {stored}): {why}") from None
+        except KeyboardInterrupt as exc:
+            self._end_with(exc)
         finally:
             self.ending = True  # the outcome is stored: a late SIGTERM must not cut the hooks' last words
             self.hooks.close()  # bounded by the longest hook deadline; undelivered events are reported
             self._log_hook_failures()
         return self.state
+
+    def _end_with(self, exc: BaseException) -> None:
+        """End the session on ``exc`` (called while it is handled): FAILED after a failed dry run (no device
+        was touched), ABORTED on an abort, FAILED on anything else (a bug's traceback goes to the log)."""
+        if isinstance(exc, DryRunFailed):
+            self._end(RunState.FAILED, str(exc), "run_failed", stop_devices=False)
+        elif isinstance(exc, (RunAborted, KeyboardInterrupt)):
+            self._end(RunState.ABORTED, str(exc) or "interrupted", "run_aborted")
+        else:
+            expected = isinstance(exc, (DeviceError, RunError))
+            if not expected:  # a bug or an unforeseen failure: the operator gets one line, the log the traceback
+                self._log("traceback", traceback.format_exc())
+            self._end(RunState.FAILED, str(exc) if expected else f"{type(exc).__name__}: {exc}", "run_failed")
 
     def _end(self, state: RunState, reason: str, hook: Event, *, stop_devices: bool = True) -> None:
         """End the session early: devices stopped first, then the state and reason stored."""

@@ -17,7 +17,15 @@ It imports nothing of ``procedures`` above it (the kinds, the store, the engine,
 faces all stand on it).
 """
 
-from procedures.station._errors import ConfigError, DryRunFailed, RunAborted, RunError, RunLocked, StateConflict
+from procedures.station._errors import (
+    ConfigError,
+    DryRunFailed,
+    ResumeRefused,
+    RunAborted,
+    RunError,
+    RunLocked,
+    StateConflict,
+)
 from procedures.station._files import InputRefused, read_text_file
 from procedures.station._geometry import (
     euler_to_matrix,
@@ -44,7 +52,8 @@ from procedures.station._yamlmarks import MarkedYaml, load_marked
 __all__ = [
     "ANGLE_COMPONENT", "CalibrationResult", "Compensator", "ConfigError", "DryRunFailed", "Event",
     "HookSpec", "InputRefused", "InstrumentScience", "MarkedYaml", "MeasurementFailed", "Operator",
-    "PoseMeasurement", "RunAborted", "RunError", "RunLocked", "Science", "StateConflict", "StationFile",
+    "PoseMeasurement", "ResumeRefused", "RunAborted", "RunError", "RunLocked", "Science", "StateConflict",
+    "StationFile",
     "StationRuntime", "TruthLog", "Vec3", "euler_to_matrix", "load_marked", "matrix_to_euler",
     "matrix_to_ur", "read_text_file", "tcp_in_m", "translated_in_frame", "ur_to_matrix",
 ]

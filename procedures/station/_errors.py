@@ -24,6 +24,11 @@ class DryRunFailed(RunError):
         super().__init__("dry run failed:\n  " + "\n  ".join(self.problems))
 
 
+class ResumeRefused(RunError):
+    """A stored run could not be continued now (its devices, plan or records are not ready); its state and
+    samples were left exactly as they were, so it can be resumed once the cause is fixed."""
+
+
 class RunAborted(RunError):
     """The operator (or the cell) aborted the run."""
 
