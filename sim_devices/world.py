@@ -79,6 +79,7 @@ class WorldConfig:
     seed: int = 0
     kinematics: KinematicsConfig = field(default_factory=KinematicsConfig)
     session: int = 0
+    ack_timeout_s: float = 10.0  # how long a settled change waits at most for the other processes' subscribers
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any] | None) -> WorldConfig:
@@ -89,7 +90,10 @@ class WorldConfig:
         session = int(data.get("session", 0))
         if session < 0:
             raise ValueError(f"world config: session must be ≥ 0, got {session}")
-        return cls(seed=int(data.get("seed", 0)), kinematics=kinematics, session=session)
+        ack_timeout = float(data.get("ack_timeout_s", 10.0))
+        if not ack_timeout > 0:
+            raise ValueError(f"world config: ack_timeout_s must be > 0 s, got {ack_timeout}")
+        return cls(seed=int(data.get("seed", 0)), kinematics=kinematics, session=session, ack_timeout_s=ack_timeout)
 
 
 def session_seed(seed: int, session: int, stream: str) -> list[int]:
@@ -207,8 +211,9 @@ class World:
         Where to append the ground-truth log (JSON lines).
     channel : WorldChannel, optional
         The shared state of a cell (``World.attach`` builds one); None: the state is this object's.
-    ack_timeout : float
-        Seconds a settled change waits at most for the subscribers of other processes.
+    ack_timeout : float, optional
+        Seconds a settled change waits at most for the subscribers of other processes (default: the
+        config's ``ack_timeout_s``).
     """
 
     def __init__(
@@ -218,12 +223,12 @@ class World:
         truth_path: str | Path | None = None,
         *,
         channel: WorldChannel | None = None,
-        ack_timeout: float = 10.0,
+        ack_timeout: float | None = None,
     ) -> None:
         self.config = config or WorldConfig()
         self.clock = clock
         self.truth = TruthLog(truth_path, shared=channel is not None)
-        self.ack_timeout = float(ack_timeout)
+        self.ack_timeout = float(self.config.ack_timeout_s if ack_timeout is None else ack_timeout)
         self._lock = threading.RLock()
         self._subscribers: list[Callable[[WorldState], None]] = []
         self._announce_listeners: list[Callable[[WorldState], None]] = []

@@ -99,6 +99,8 @@ class FakeCell:
         self.protective_stop_on_moves: set[int] = set()
         self.moves = 0
         self.fail_grabs = 0
+        self.old_exposures = 0  # frame triples whose frames were exposed before the last motion ended
+        self.old_after_moves: dict[int, int] = {}  # move number (1-based) → how many triples after it are that old
         self.fail_measures = 0
         # Frame triples that show the pose from before the last move (a camera that missed the new pose):
         # move number (1-based) → how many triples after it are stale.
@@ -241,6 +243,7 @@ class FakeRobot:
             raise ProtectiveStop("robot", "moveL", "robot is in protective stop")
         self.cell.moves += 1
         self.cell.stale_grabs = self.cell.stale_after_moves.get(self.cell.moves, 0)
+        self.cell.old_exposures = self.cell.old_after_moves.get(self.cell.moves, 0)
         if self.cell.moves in self.cell.protective_stop_on_moves:
             self.protective_stop = True
             raise ProtectiveStop("robot", "moveL", "protective stop during the move (simulated collision)")
@@ -332,7 +335,13 @@ class FakeCamera:
                 self.cell.stale_grabs -= 1
             self.cell.snapshots[frame_id] = (self.cell.previous_opr if stale else self.cell.opr_in_m).copy()
         image = np.full((8, 8), frame_id % 256, dtype=np.uint8)
-        return Frame(image=image, timestamp=time.time(), frame_id=frame_id, camera=self.screen, saturation=255)
+        now = time.time()
+        with self.cell.lock:  # a frame left in the camera's buffer from before the motion: exposed a second ago
+            old = self.cell.old_exposures > 0
+            if old and self.screen == "z":
+                self.cell.old_exposures -= 1
+        return Frame(image=image, timestamp=now, frame_id=frame_id, camera=self.screen, saturation=255,
+                     exposure_start=now - 1.0 if old else now, evidence="exposure")
 
 
 class FakeFrameStream:

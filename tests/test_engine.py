@@ -506,3 +506,27 @@ def test_a_resume_that_cannot_start_leaves_the_run_as_it_was(setup):
     with _engine(tmp_path, None, cell, run_id=run_id) as engine:
         assert engine.execute() == "FINISHED"
         assert [s.step_index for s in engine.store.samples(run_id)] == list(range(15))
+
+
+def test_frames_exposed_before_the_motion_ended_are_measured_again_whatever_they_show(setup):
+    """A frame must be proven to show the scene after the motion ended (its exposure time against the
+    motion's): a triple exposed before it (here the previous pose's, left in the cameras' buffers) fails the
+    attempt even with the plausibility check off, where it would be stored as good; the pose is measured
+    again and every stored sample carries the proof of its frames."""
+    tmp_path, station, cell = setup
+    cell.stale_after_moves = {3: 1}
+    cell.old_after_moves = {3: 1}
+    proc = _procedure(tmp_path, "iso9283_repeatability", cycles=2, frames_per_pose=1, plausibility_mm=0,
+                      plausibility_deg=0, retry_backoff_s=0)
+    with _engine(tmp_path, station, cell, proc) as engine:
+        assert engine.execute() == "FINISHED"
+        samples = engine.store.samples(engine.run_id)
+        events = [e["message"] for e in engine.store.events(engine.run_id) if e["kind"] == "measure_failed"]
+    assert len(events) == 1 and events[0].startswith(samples[2].step_key)
+    assert "before the motion was done (a stale frame)" in events[0]
+    p4 = [s.solved.pose[:3] for s in samples if s.label == "P4"]
+    assert samples[2].ok and np.max(np.ptp(p4, axis=0)) < 1e-3  # P4's own pose, not P5's
+    for sample in samples:
+        proof = sample.solved.quality.exposure
+        assert proof is not None and len(proof.frames) == 3 and proof.motion_ended is not None
+        assert all(f.evidence == "exposure" and f.at >= proof.motion_ended for f in proof.frames)

@@ -50,7 +50,14 @@ PROCEDURES = {
     "displacement": ("procedure: displacement_calibration\nparameters: {axes: [x], groups: 1, "
                      "group_start_offsets_mm: [[0, 0, 0]], repeats: 2, step_mm: 10, stop_mm: 40, "
                      f"interferometer_average_s: 0.05, {COMMON}}}\n"),
+    # 1 mm steps: a frame of the previous point is only 1 mm off, below the 2 mm plausibility limit.
+    "displacement_1mm": ("procedure: displacement_calibration\nparameters: {axes: [x], groups: 1, "
+                         "group_start_offsets_mm: [[0, 0, 0]], repeats: 2, step_mm: 1, stop_mm: 5, "
+                         f"interferometer_average_s: 0.05, {COMMON}}}\n"),
 }
+# The cell's settled changes wait at most this long for the cameras (10 s by default): the starved camera
+# below takes longer, so the robot says "done" while the cameras still show the previous point.
+ACK_TIMEOUT_S = 2.0
 EXIT = {"FINISHED": 0, "FAILED": 1, "ABORTED": 2, "PAUSED": 3}
 
 
@@ -95,13 +102,18 @@ CASES = [
         Fault("interferometer", "disconnect", 7, {"seconds": 1.0})], "recovered"),
     Case("cameras laser off 2 s", "iso", [Fault("cameras", "laser_off", 3, lasts_s=2.0)], "recovered"),
     Case("cameras laser off 8 s", "iso_strict", [Fault("cameras", "laser_off", 3, lasts_s=8.0)], "failed"),
+    # The camera process starved (its frames come after the acknowledgement timeout): such frames once
+    # stored 1 mm steps as good samples 0.9 mm off. Every frame must prove it shows the scene after the move.
+    Case("cameras starved", "displacement_1mm", [Fault("cameras", "render_delay", 3, {"seconds": 3.0, "count": 3})],
+         "recovered"),
 ]
 ROWS: list[dict[str, Any]] = []
 
 
 @pytest.fixture(scope="module")
 def cell(tmp_path_factory):
-    with SimCell(seed=11, directory=tmp_path_factory.mktemp("cell"), time_scale=4.0) as running:
+    with SimCell(seed=11, directory=tmp_path_factory.mktemp("cell"), time_scale=4.0,
+                 config={"world": {"ack_timeout_s": ACK_TIMEOUT_S}}) as running:
         yield running
     _write_table()
 
@@ -135,6 +147,9 @@ def _inject(cell: SimCell, fault: Fault) -> None:
     if fault.device != "cameras":
         cell.inject_fault(fault.device, fault.kind, **fault.params)
         return
+    if fault.kind == "render_delay":
+        cell.forward("cameras", "render_delay", **fault.params)
+        return
     cell.forward("cameras", "laser", on=False)
     timer = threading.Timer(fault.lasts_s or 0.0, lambda: cell.forward("cameras", "laser", on=True))
     timer.daemon = True
@@ -145,6 +160,7 @@ def _clear(cell: SimCell) -> None:
     for device in ("robot", "rotary_table", "interferometer"):
         cell.clear_faults(device)
     cell.forward("cameras", "laser", on=True)
+    cell.forward("cameras", "render_delay", seconds=0.0)
 
 
 def _store(runs: Path) -> tuple[dict, list[dict], list[dict], int]:
@@ -282,7 +298,7 @@ def test_fault_mid_run_then_resume_to_finished(cell, tmp_path, case):
     lost = sum(1 for s in samples if not s["ok"])
     assert lost == 0, [s["error"] for s in samples if not s["ok"]]
     _check_against_truth(case.procedure.split("_")[0], samples, TruthLog.read(cell.truth_path))
-    if case.procedure == "displacement":
+    if case.procedure.startswith("displacement"):
         reestablished = [e for e in events if e["kind"] == "datum"]
         assert _check_datums_joined(json.loads(run["results"])) == len({e["message"] for e in reestablished})
     for fault, seconds in zip(case.faults, detect):

@@ -53,7 +53,7 @@ def run(args) -> int:
                             "wait for it to end or stop that process")
     simulation = (stored["station"] or {}).get("simulation") or {}
     station_arg = args.station
-    if station_arg is None and simulation:
+    if station_arg is None and simulation and not _cell_running(simulation):
         station_arg = "sim"  # its cell ended with the session that measured it: a new one, as --station sim
     seed = args.seed if args.seed is not None else _stored_seed(stored)
     session = _next_session(simulation) if station_arg == "sim" else 0
@@ -68,6 +68,19 @@ def run(args) -> int:
                          lambda engine: console_pause_handler(engine, display),
                          pause_timeout_s=args.pause_timeout, store=args.store) as engine:
             return drive(engine, args, display)
+
+
+def _cell_running(simulation: dict) -> bool:
+    """Whether the simulated cell a run was measured on still runs (its control channel answers a ping)."""
+    control = simulation.get("control") or {}
+    if not isinstance(control.get("host"), str) or not isinstance(control.get("port"), int):
+        return False
+    from sim_devices.control import ControlClient, ControlError  # only for a run measured on a simulated cell
+
+    try:
+        return bool(ControlClient(control["host"], control["port"], timeout=2.0).call("ping") == "pong")
+    except (ControlError, OSError, ValueError):
+        return False
 
 
 def _next_session(simulation: dict) -> int:

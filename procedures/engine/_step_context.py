@@ -9,6 +9,7 @@ procedure asks.
 from __future__ import annotations
 
 import re
+import time
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
@@ -32,7 +33,7 @@ from procedures.station import (
     StationFile,
     StationRuntime,
 )
-from procedures.store import CorrectedPose, PoseQuality, SolvedPose, as_pose
+from procedures.store import CorrectedPose, ExposureEvidence, FrameExposure, PoseQuality, SolvedPose, as_pose
 
 S = TypeVar("S")
 
@@ -68,6 +69,10 @@ class StationStepContext:
         self._wait, self._check_abort, self._log, self._run_dir = wait, check_abort, log, run_dir
         self._emit = emit
         self._states: dict[type, Any] = {}  # the kind's (and its helpers') memory of this session, by type
+        # Host wall-clock times of the last motion (sent, done): what a measured frame must be newer than.
+        self._motion_started: float | None = None
+        self._motion_ended: float | None = None
+        self._session_started = time.time()
 
     def session_state(self, state: type[S]) -> S:
         if state not in self._states:
@@ -99,13 +104,24 @@ class StationStepContext:
 
     def move_robot(self, tcp_pose: Sequence[float]) -> None:
         speed, acceleration = robot_speed(self._station.envelope, self._params)
-        self.robot.move_linear(np.asarray(tcp_pose, dtype=float), speed, acceleration,
-                               timeout=self._params.move_timeout_s)
+        target = np.asarray(tcp_pose, dtype=float)
+        self._motion(lambda: self.robot.move_linear(target, speed, acceleration, timeout=self._params.move_timeout_s))
 
     def turn_table(self, angle: float, speed: float) -> None:
         table = self.table
-        table.move_absolute(angle, speed=speed)
-        table.wait_in_position(timeout=self._params.move_timeout_s)
+
+        def turn() -> None:
+            table.move_absolute(angle, speed=speed)
+            table.wait_in_position(timeout=self._params.move_timeout_s)
+
+        self._motion(turn)
+
+    def _motion(self, move: Callable[[], None]) -> None:
+        """Run a blocking ``move``, noting when it was sent and when it was done (the frames measured next
+        must be proven newer: ``exposure_evidence``)."""
+        self._motion_started, self._motion_ended = time.time(), None
+        move()
+        self._motion_ended = time.time()
 
     def settle(self) -> None:
         self._wait(self._params.settle_time_s)
@@ -122,6 +138,9 @@ class StationStepContext:
             try:
                 for _ in range(p.frames_per_pose):
                     triples.append({s: self._station.camera(s).grab(timeout=p.grab_timeout_s) for s in SCREENS})
+                exposure, unproven = self._exposure_evidence(triples)
+                if unproven:  # a frame not proven to show the scene after the motion: never a good sample
+                    raise MeasurementFailed(unproven)
                 measurements = [self._science.measure(triple) for triple in triples]
             except (MeasurementFailed, GrabFailed) as exc:
                 last_error = f"attempt {attempt + 1}: {exc}"
@@ -133,7 +152,7 @@ class StationStepContext:
                 continue
             write_live_frames(self._run_dir, step.index, step.key, {s: f.image for s, f in triples[-1].items()},
                               measurements[-1].crosses)
-            solved = _solved(measurements, attempts=attempt + 1)
+            solved = _solved(measurements, attempts=attempt + 1, exposure=exposure)
             implausible = _implausible(solved.pose, expected, p)
             if implausible:  # a frame of another pose (stale, or another target): never a good sample
                 last_error = f"attempt {attempt + 1}: {implausible}"
@@ -148,6 +167,31 @@ class StationStepContext:
                                crosses={s: [m.crosses.get(s) for m in measurements] for s in SCREENS},
                                frames=frames_saved or None, t_measured=float(np.mean(stamps)), attempts=attempt + 1)
         return PoseReading(ok=False, error=last_error, frames=frames_saved or None, attempts=p.retries_per_pose + 1)
+
+    def _exposure_evidence(self, triples: Sequence[Mapping[str, Frame]]) -> tuple[ExposureEvidence, str]:
+        """The frames' proof of showing the scene after the last motion, and what is not proven ("" if all is).
+
+        A frame that shows a scene still since a time (the simulated file cameras' stamp) must be still since
+        the motion was sent at the latest: the only still scene after that is the motion's end. A frame whose
+        exposure started at a time must have started after the motion was reported done. A frame with
+        neither is no proof (the camera gives no exposure time: a hardware trigger without stamps).
+        """
+        started = self._motion_started if self._motion_started is not None else self._session_started
+        ended = self._motion_ended if self._motion_ended is not None else self._session_started
+        exposures, problems = [], []
+        for triple in triples:
+            for screen, frame in triple.items():
+                if frame.exposure_start is None or frame.evidence not in ("still since", "exposure"):
+                    problems.append(f"camera {screen}: its frame carries no evidence of when it was exposed "
+                                    "(use a software trigger or the camera's embedded frame stamps)")
+                    continue
+                exposures.append(FrameExposure(screen, float(frame.exposure_start), str(frame.evidence)))
+                bound, event = (started, "was sent") if frame.evidence == "still since" else (ended, "was done")
+                if frame.exposure_start < bound:
+                    problems.append(f"camera {screen}: the frame shows the scene as it was "
+                                    f"{bound - frame.exposure_start:.3f} s before the motion {event} (a stale frame)")
+        evidence = ExposureEvidence(self._motion_started, self._motion_ended, tuple(exposures))
+        return evidence, "; ".join(dict.fromkeys(problems))
 
     def stream_motion(self, step: Step, motion: Callable[[], None], *, rate_hz: float, exposure_s: float,
                       hold_s: float, target_in_m: Sequence[float] | None = None,
@@ -238,10 +282,11 @@ def _implausible(pose: Sequence[float], expected: Mapping[int, float] | None, pa
             f"{params.plausibility_mm:g} mm, {params.plausibility_deg:g}°): a stale or wrong frame")
 
 
-def _solved(measurements: Sequence[PoseMeasurement], *, attempts: int) -> SolvedPose:
+def _solved(measurements: Sequence[PoseMeasurement], *, attempts: int,
+            exposure: ExposureEvidence | None = None) -> SolvedPose:
     """The mean pose of the frame triples, with their spread and each one's pose: the core's results, typed."""
     poses = np.array([m.pose for m in measurements])
     quality = PoseQuality(residual_rms=float(np.mean([m.residual_rms for m in measurements])),
-                          pose_std=as_pose(poses.std(axis=0)), attempts=attempts)
+                          pose_std=as_pose(poses.std(axis=0)), attempts=attempts, exposure=exposure)
     return SolvedPose(pose=as_pose(poses.mean(axis=0)), quality=quality, per_frame=tuple(as_pose(p) for p in poses),
                       components=COMPONENTS)

@@ -21,6 +21,8 @@ from procedures.store._run_state import RESUMABLE_STATES, RunState
 from procedures.store._samples import (
     Commanded,
     CorrectedPose,
+    ExposureEvidence,
+    FrameExposure,
     Pose,
     PoseQuality,
     Reference,
@@ -34,6 +36,7 @@ from procedures.store._store import Lease, RunStore, StoredStream
 
 __all__ = [
     "LATEST", "MIGRATIONS", "RESUMABLE_STATES", "SQLITE_FILE", "STORE_ENV", "Commanded", "CorrectedPose",
-    "DuplicateStep", "Lease", "Migration", "Pose", "PoseQuality", "Reference", "RunState", "RunStore", "Sample",
+    "DuplicateStep", "ExposureEvidence", "FrameExposure", "Lease", "Migration", "Pose", "PoseQuality", "Reference",
+    "RunState", "RunStore", "Sample",
     "SessionConditions", "SolvedPose", "StoreError", "StoredStream", "as_pose", "store_location",
 ]

@@ -36,17 +36,56 @@ def _optional_float(value: Any) -> float | None:
 
 
 @dataclass(frozen=True)
+class FrameExposure:
+    """When one frame is known to show the scene (``drivers.camera.Frame``): host wall-clock seconds ``at``,
+    meaning ``evidence`` — ``"still since"`` (a still scene since then) or ``"exposure"`` (exposed from then)."""
+
+    camera: str
+    at: float
+    evidence: str
+
+
+@dataclass(frozen=True)
+class ExposureEvidence:
+    """The proof that a pose's frames show the scene after the motion that brought it there ended.
+
+    motion_started, motion_ended : host wall-clock seconds when the last motion before the measurement
+        was sent and when it was reported done (None: no motion in this session before it)
+    frames : every frame averaged into the pose; each ``still since`` at or after ``motion_started``
+        (a scene still since the motion began is its end) or exposed at or after ``motion_ended``
+    """
+
+    motion_started: float | None
+    motion_ended: float | None
+    frames: tuple[FrameExposure, ...]
+
+    def to_stored(self) -> dict[str, Any]:
+        return {"motion_started": self.motion_started, "motion_ended": self.motion_ended,
+                "frames": [{"camera": f.camera, "at": f.at, "evidence": f.evidence} for f in self.frames]}
+
+    @classmethod
+    def from_stored(cls, data: Mapping[str, Any]) -> ExposureEvidence:
+        return cls(motion_started=_optional_float(data.get("motion_started")),
+                   motion_ended=_optional_float(data.get("motion_ended")),
+                   frames=tuple(FrameExposure(str(f["camera"]), float(f["at"]), str(f["evidence"]))
+                                for f in data.get("frames") or ()))
+
+
+@dataclass(frozen=True)
 class PoseQuality:
     """How well a pose was measured.
 
     residual_rms : the solver's consistency residual (m on the screens), the mean over the frames
     pose_std : (6,) the spread of the frames' poses that were averaged (m, rad)
     attempts : how many times the step's frames were grabbed and solved (retries included)
+    exposure : the proof that its frames were exposed after the motion ended (None in runs stored before
+        frames carried it, and for a move measured in motion)
     """
 
     residual_rms: float | None = None
     pose_std: Pose | None = None
     attempts: int | None = None
+    exposure: ExposureEvidence | None = None
 
 
 @dataclass(frozen=True)
@@ -66,20 +105,25 @@ class SolvedPose:
     components: tuple[str, ...] = COMPONENTS
 
     def to_stored(self) -> dict[str, Any]:
-        return {"pose": list(self.pose),
-                "pose_std": None if self.quality.pose_std is None else list(self.quality.pose_std),
-                "per_frame": None if self.per_frame is None else [list(p) for p in self.per_frame],
-                "residual_rms": self.quality.residual_rms, "components": list(self.components),
-                "attempts": self.quality.attempts}
+        stored: dict[str, Any] = {"pose": list(self.pose),
+                                  "pose_std": None if self.quality.pose_std is None else list(self.quality.pose_std),
+                                  "per_frame": None if self.per_frame is None else [list(p) for p in self.per_frame],
+                                  "residual_rms": self.quality.residual_rms, "components": list(self.components),
+                                  "attempts": self.quality.attempts}
+        if self.quality.exposure is not None:
+            stored["exposure"] = self.quality.exposure.to_stored()
+        return stored
 
     @classmethod
     def from_stored(cls, data: Mapping[str, Any]) -> SolvedPose:
         per_frame = data.get("per_frame")
         attempts = data.get("attempts")
+        exposure = data.get("exposure")
         return cls(pose=as_pose(data.get("pose") or ()),
                    quality=PoseQuality(residual_rms=_optional_float(data.get("residual_rms")),
                                        pose_std=_optional_pose(data.get("pose_std")),
-                                       attempts=None if attempts is None else int(attempts)),
+                                       attempts=None if attempts is None else int(attempts),
+                                       exposure=None if exposure is None else ExposureEvidence.from_stored(exposure)),
                    per_frame=None if per_frame is None else tuple(as_pose(p) for p in per_frame),
                    components=tuple(data.get("components") or COMPONENTS))
 

@@ -124,6 +124,7 @@ class CameraFileTwin:
         self._stopping = False
         self._last_state: WorldState | None = None
         self.render_delay = float(render_delay)
+        self._delayed_sets = -1  # how many more settled frame sets wait render_delay (-1: all of them)
         self.stamp_frames = bool(stamp_frames)
 
     # ------------------------------------------------------------------ lifecycle (cell host API)
@@ -172,6 +173,14 @@ class CameraFileTwin:
         self._on_state(self.world.state(), force=True)
         return {"frames_written": self.frames_written}
 
+    def set_render_delay(self, seconds: float, count: int = -1) -> dict[str, float]:
+        """Starve the renderer: the next ``count`` settled frame sets (-1: every one) are put in place
+        ``seconds`` late (a camera process that cannot keep up; the fault matrix's starved camera)."""
+        if not seconds >= 0 or count < -1:
+            raise ValueError(f"camera twin: render_delay needs seconds ≥ 0 and count ≥ -1, got {seconds}, {count}")
+        self.render_delay, self._delayed_sets = float(seconds), int(count)
+        return {"seconds": self.render_delay, "count": self._delayed_sets}
+
     def files(self) -> dict[str, str]:
         return {name: str(path) for name, path in self.paths.items()}
 
@@ -182,10 +191,12 @@ class CameraFileTwin:
                 "rendered_ahead": self.rendered_ahead}
 
     def control(self, command: str, /, **kwargs: Any) -> Any:
-        """``laser`` (on: bool), ``exposure`` (scale: float), ``render`` (re-render now), ``files``, ``stats``,
+        """``laser`` (on: bool), ``exposure`` (scale: float), ``render`` (re-render now), ``render_delay``
+        (seconds, count: a starved renderer), ``files``, ``stats``,
         ``stream_stats`` (streams served, frames rendered, the cameras' clocks)."""
         commands: dict[str, Callable[..., Any]] = {"laser": self.set_laser, "exposure": self.set_exposure,
-                                                   "render": self.render, "files": self.files, "stats": self.stats,
+                                                   "render": self.render, "render_delay": self.set_render_delay,
+                                                   "files": self.files, "stats": self.stats,
                                                    "stream_stats": self.streams.stats}
         return dispatch(commands, command, kwargs, "camera twin")
 
@@ -256,8 +267,9 @@ class CameraFileTwin:
             index = self.frames_written + 1
             scale = self._scale()
             announced, ahead = self._take_ahead(index, state.opr_in_m, scale)
-            if self.render_delay > 0:
+            if self.render_delay > 0 and self._delayed_sets != 0:
                 time.sleep(self.render_delay)  # a slow renderer: the settled pose's ack comes this much later
+                self._delayed_sets -= self._delayed_sets > 0
             still_since = time.time()  # the scene these frames show has been still at least since now
             files = {}
             for name in AXIS_NAMES:
@@ -363,7 +375,7 @@ class SimCamera:
         """Expose now: the frame shows the world's pose at this instant."""
         self._require_open("trigger")
         state = self.world.state()
-        self._pending = (state.opr_in_m, float(state.seq))
+        self._pending = (state.opr_in_m, time.time())  # the pose at this instant, and the instant
 
     def retrieve(self, timeout: float = 2.0) -> Frame:
         """The frame of the last trigger (one attempt; ``grab`` adds retries)."""
@@ -375,7 +387,7 @@ class SimCamera:
             self._pending = None
             time.sleep(min(timeout, 0.01))
             raise DeviceTimeout(self._device, "retrieve frame", f"no frame within {timeout:.3g} s")
-        opr_in_m, _seq = self._pending
+        opr_in_m, exposed_at = self._pending
         self._pending = None
         if self.faults.take(FaultKind.DROP_REPLY):
             raise GrabFailed(self._device, "retrieve frame", "the buffer was incompletely grabbed")
@@ -384,7 +396,7 @@ class SimCamera:
         if self.roi is not None:
             r = self.roi
             image = image[r.offset_y:r.offset_y + r.height, r.offset_x:r.offset_x + r.width].copy()
-        return Frame(image, time.time(), self._frame_id, self.name, self.renderer.saturation)
+        return Frame(image, time.time(), self._frame_id, self.name, self.renderer.saturation, exposed_at, "exposure")
 
     def grab(self, timeout: float = 2.0) -> Frame:
         """Trigger and retrieve, retrying incomplete buffers and timeouts a bounded number of times."""
