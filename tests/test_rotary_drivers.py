@@ -299,6 +299,30 @@ def test_open_with_an_alarm_present(fresh_twin):
             assert twin.truth()["homed"] and not twin.truth()["alarms"]
 
 
+def test_a_slow_camera_never_holds_up_the_tables_answers(fresh_twin):
+    """A settled angle reaches the world only once every camera has rendered it (here one that takes
+    1 s): meanwhile the drive answers every request at once (the driver's timeout is 0.2 s, no retry)
+    and says 'not in position'; in position comes only after the camera had the angle."""
+    world, twin, config = fresh_twin
+    rendered: list[tuple[float, float]] = []
+
+    def slow_camera(state):
+        if state.settled:
+            time.sleep(1.0)
+            rendered.append((time.monotonic(), state.table_angle))
+
+    with create({**config, "retries": 0}, name="table") as table:
+        world.subscribe(slow_camera)
+        try:
+            table.move_absolute(0.3)
+            with_table = table.wait_in_position(timeout=20)  # polls every few ms, each answer within 0.2 s
+            in_position_at = time.monotonic()
+        finally:
+            world.unsubscribe(slow_camera)
+    assert rendered and in_position_at >= rendered[-1][0]
+    assert abs(rendered[-1][1] - world.table_angle()) < 1e-12 and abs(with_table - world.table_angle()) <= _bound(twin)
+
+
 @pytest.mark.parametrize("transport", TRANSPORTS)
 def test_open_gives_up_on_a_reference_move_that_does_not_end(transport):
     world = World()

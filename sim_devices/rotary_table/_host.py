@@ -104,9 +104,14 @@ class RotaryTableTwin:
         self.tick = settings.tick
         self._min_interval = 1.0 / settings.world_rate
         self._last_unsettled = -1e9
-        self._published: tuple[float, bool] | None = None
+        # The state for the world waits here for the publisher thread: the physics tells it under its
+        # lock, and a settled state's publication waits for every camera to render it, which must
+        # never hold up the drive's answers (a status read would time out in the driver).
+        self._mail = threading.Condition()
+        self._pending: tuple[float, bool] | None = None
+        self._publishing = False
         self.physics = TablePhysics(self.table_config, clock=clock, on_change=self._to_world,
-                                    initial_angle=world.table_angle())
+                                    initial_angle=world.table_angle(), seen=self._seen)
         self.modbus: ModbusTableTwin | None = None
         self.gcs: GcsTableTwin | None = None
         if {"modbus_tcp", "modbus_rtu"} & set(self.transports):
@@ -120,6 +125,7 @@ class RotaryTableTwin:
             self.gcs_tcp = GcsTcpTwin(self.physics, port=settings.gcs_tcp_port)
         self._stop = threading.Event()
         self._ticker: threading.Thread | None = None
+        self._publisher: threading.Thread | None = None
         self.endpoints: dict[str, Any] = {}
 
     # ----------------------------------------------------------------------------- world link
@@ -131,18 +137,49 @@ class RotaryTableTwin:
             return
         if not settled:
             self._last_unsettled = now
-        self._published = (angle, settled)
-        self.world.set_table_angle(angle, settled=settled)
+        if self._publisher is None:  # not started (a test's fake clock): the world at once
+            self.world.set_table_angle(angle, settled=settled)
+            return
+        with self._mail:
+            self._pending = (angle, settled)  # the latest wins: the world needs no stale in-between angle
+            self._mail.notify_all()
+
+    def _seen(self) -> bool:
+        """Everything the physics told has reached the world (a settled angle: every camera has it)."""
+        with self._mail:
+            return self._pending is None and not self._publishing
+
+    def _publish_to_world(self) -> None:
+        while True:
+            with self._mail:
+                while self._pending is None and not self._stop.is_set():
+                    self._mail.wait(0.5)
+                if self._pending is None:
+                    return
+                angle, settled = self._pending
+                self._pending, self._publishing = None, True
+            try:
+                self.world.set_table_angle(angle, settled=settled)
+            finally:
+                with self._mail:
+                    self._publishing = False
+                    self._mail.notify_all()
 
     def _tick(self) -> None:
         while not self._stop.wait(self.tick):
-            self.sync()
+            self.sync(wait=False)
 
-    def sync(self) -> None:
-        """Advance the physics now and bring the world up to date (e.g. right after a re-mount)."""
+    def sync(self, wait: bool = True, timeout: float = 30.0) -> None:
+        """Advance the physics now and bring the world up to date (e.g. right after a re-mount); with
+        ``wait``, return once the world has it (at most ``timeout`` s)."""
         if self.world.mount.startswith("table") and self.world.table_angle() != self.physics.true_angle():
             self.physics.forget_published()
         self.physics.update()
+        if wait and self._publisher is not None:
+            deadline = time.monotonic() + timeout
+            with self._mail:
+                while (self._pending is not None or self._publishing) and time.monotonic() < deadline:
+                    self._mail.wait(0.05)
 
     # ----------------------------------------------------------------------------- host API
     def faults(self, transport: str) -> FaultPlan:
@@ -169,15 +206,22 @@ class RotaryTableTwin:
             self.stop()
             raise
         self._stop.clear()
+        self._publisher = threading.Thread(target=self._publish_to_world, name="rotary table to world", daemon=True)
+        self._publisher.start()
         self._ticker = threading.Thread(target=self._tick, name="rotary table ticker", daemon=True)
         self._ticker.start()
         return dict(self.endpoints)
 
     def stop(self) -> None:
         self._stop.set()
+        with self._mail:
+            self._mail.notify_all()
         if self._ticker is not None:
             self._ticker.join(5.0)
             self._ticker = None
+        if self._publisher is not None:
+            self._publisher.join(15.0)
+            self._publisher = None
         for face in (self.modbus, self.gcs, self.gcs_tcp):
             if face is not None:
                 face.stop()

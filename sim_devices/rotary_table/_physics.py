@@ -153,16 +153,23 @@ class TablePhysics:
     clock : callable
         Seconds (monotonic); inject a fake clock in tests.
     on_change : callable, optional
-        ``on_change(true_angle, settled)`` whenever the truth may have changed (see ``update``).
+        ``on_change(true_angle, settled)`` whenever the truth may have changed (see ``update``). It is
+        called under the table's lock, so it must not block (the host hands the state to a thread).
     initial_angle : float
         True angle at power-on (rad).
+    seen : callable, optional
+        ``seen()`` is true once everything ``on_change`` was told has reached the world (every camera
+        has it): the drive reports in position only then, as a real table's stage is in position only
+        once it is, so frames taken after "in position" never show an older angle.
     """
 
     def __init__(self, config: TableConfig | None = None, clock: Callable[[], float] = time.monotonic,
-                 on_change: Callable[[float, bool], None] | None = None, initial_angle: float = 0.0) -> None:
+                 on_change: Callable[[float, bool], None] | None = None, initial_angle: float = 0.0,
+                 seen: Callable[[], bool] | None = None) -> None:
         self.config = config or TableConfig()
         self.clock = clock
         self.on_change = on_change
+        self.seen = seen
         self._lock = threading.RLock()
         seed_seq = np.random.SeedSequence([self.config.seed, 0x7AB1E])
         self._rng = np.random.default_rng(seed_seq)
@@ -380,7 +387,8 @@ class TablePhysics:
                 "stopping": self._stopping and moving,
                 "homing": self._homing,
                 "homed": self._homed,
-                "in_position": not moving and not self._alarms and t >= self._profile_end + self.config.settle_time,
+                "in_position": (not moving and not self._alarms and t >= self._profile_end + self.config.settle_time
+                                and (self.seen is None or self.seen())),
                 "alarms": sorted(self._alarms),
                 "velocity": velocity,
                 "target_counts": self._target_counts,
