@@ -59,6 +59,11 @@ from sim_devices.world import World
 
 TICKS_PER_SECOND = 1_000_000_000
 POLL = 0.005  # s between looks at the request directory and at a consumer's progress
+# With no stream open and no request for a while, the twin looks at its directory this often (a start
+# request waits at most this long; its stream's t0 lies ``start_lead`` ahead of the answer anyway):
+# an idle cell must not burn a core's tenth on directory listings.
+IDLE_POLL = 0.05
+IDLE_AFTER = 2.0  # s without a request or an open stream before the twin polls at IDLE_POLL
 SEQ_BASE = 1 << 40  # noise seeds of stream frames, apart from the static frame sets 1, 2, ...
 
 
@@ -287,14 +292,17 @@ class StreamServer:
 
     # ----------------------------------------------------------------------------- serving
     def _serve(self) -> None:
+        busy_at = time.monotonic()
         while not self._stop.is_set():
             try:
                 worked = self._requests() | self._render_some()
             except Exception as exc:  # a broken stream must not end the service
                 self.errors.append(f"{type(exc).__name__}: {exc}")
                 worked = False
+            if worked or self._streams:
+                busy_at = time.monotonic()
             if not worked:
-                self._stop.wait(POLL)
+                self._stop.wait(POLL if time.monotonic() - busy_at < IDLE_AFTER else IDLE_POLL)
 
     def _requests(self) -> bool:
         worked = False
@@ -360,6 +368,8 @@ class StreamServer:
     def _render_some(self) -> bool:
         """Render the next frame of every camera of every stopped stream that can have one now."""
         worked = False
+        if not self._streams:
+            return False
         now = self.controller_now()
         for stream in list(self._streams.values()):
             if not stream.stopped or stream.done:

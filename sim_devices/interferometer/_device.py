@@ -49,7 +49,7 @@ from sim_devices.interferometer._head import InterferometerHead
 
 FEED_FAULTS = (FaultKind.BEAM_BREAK, FaultKind.STALL, FaultKind.DROP_REPLY, FaultKind.BAD_CRC,
                FaultKind.GARBAGE, FaultKind.DISCONNECT, FaultKind.DELAY)
-
+BATCH = 0.005  # s: how far past a due sample the head's clock thread sleeps (see _run)
 
 class Transport(Protocol):
     def send_frame(self, can_id: int, data: bytes, timestamp: float) -> None: ...
@@ -86,6 +86,7 @@ class InterferometerDevice:
         self._counter = 0
         self._heartbeat = 0
         self._environment_cycle = 0
+        self._on_bus_at: float | None = None  # monotonic time of the tick being sent (None: now)
 
     # ------------------------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -114,7 +115,10 @@ class InterferometerDevice:
             due = origin_mono + tick * period
             now = time.monotonic()
             if due > now:
-                time.sleep(min(due - now, 0.002))
+                # Past the next sample by one batch: the samples due meanwhile go out together, each
+                # stamped with its own time on the bus (a Python thread waking at 1 kHz costs a tenth
+                # of a core; a host reads CAN frames in bursts from its kernel's queue anyway).
+                time.sleep(due - now + BATCH)
                 continue
             if now - due > self.config.max_catch_up:  # far behind (host starved): these samples are lost
                 skipped = int((now - due) / period)
@@ -122,17 +126,19 @@ class InterferometerDevice:
                 self._counter = (self._counter + skipped) & 0xFF
                 self._count("late_skipped", skipped)
                 continue
+            self._on_bus_at = None  # a reply goes out now: never stamped before its command came
             self._execute_commands()
-            self._take_faults(now)
-            if now < self._stall_until:
+            self._on_bus_at = due
+            self._take_faults(due)
+            if due < self._stall_until:
                 self._count("stalled_ticks")
                 tick += 1
                 continue
             if tick % status_every == 0:
                 self.head.refraction_ratio = self.environment.refraction_ratio(self.environment.conditions())
-            self._sample(now)
+            self._sample(due)
             if tick % status_every == 0:
-                self._send_status(now)
+                self._send_status(due)
             if tick % environment_every == 0:
                 self._send_environment()
             tick += 1
@@ -240,7 +246,10 @@ class InterferometerDevice:
         self._count("garbage")
 
     def _broadcast(self, can_id: int, data: bytes) -> None:
-        sent = self._origin_epoch + (time.monotonic() - self._origin_mono)  # epoch time, immune to clock steps
+        # The frame goes on the bus at its sample's time (epoch, immune to clock steps), never earlier
+        # than the frame before it (the bus timing keeps them apart).
+        at = self._on_bus_at if self._on_bus_at is not None else time.monotonic()
+        sent = self._origin_epoch + (at - self._origin_mono)
         stamp = self.timing.receive_time(sent, len(data))
         for transport in self.transports.values():
             transport.send_frame(can_id, data, stamp)
