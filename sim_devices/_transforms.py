@@ -10,6 +10,8 @@ angles (alpha, theta, gamma) mean R = Rz(gamma) @ Ry(theta) @ Rx(alpha). UR pose
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 ARCSEC = np.pi / (180.0 * 3600.0)
@@ -64,29 +66,32 @@ def matrix_to_rotvec(rotation: np.ndarray) -> np.ndarray:
     antisymmetric part of the matrix vanishes and the textbook formula loses the axis's sign and
     most of its digits.
     """
-    r = np.asarray(rotation, dtype=float)
-    trace = r[0, 0] + r[1, 1] + r[2, 2]
-    candidates = (trace, r[0, 0], r[1, 1], r[2, 2])
-    i = int(np.argmax(candidates))
-    if i == 0:
-        w = 0.5 * np.sqrt(max(1.0 + trace, 0.0))
-        v = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]]) / (4.0 * w)
+    # On Python floats (the twins' cycles call this hundreds of times a second; numpy scalars are slow).
+    (r00, r01, r02), (r10, r11, r12), (r20, r21, r22) = np.asarray(rotation, dtype=float)[:3, :3].tolist()
+    trace = r00 + r11 + r22
+    if trace >= r00 and trace >= r11 and trace >= r22:  # np.argmax's choice: the first of the largest
+        w = 0.5 * math.sqrt(max(1.0 + trace, 0.0))
+        four = 4.0 * w
+        x, y, z = (r21 - r12) / four, (r02 - r20) / four, (r10 - r01) / four
+    elif r00 >= r11 and r00 >= r22:
+        x = 0.5 * math.sqrt(max(1.0 + r00 - r11 - r22, 0.0))
+        four = 4.0 * x
+        y, z, w = (r10 + r01) / four, (r20 + r02) / four, (r21 - r12) / four
+    elif r11 >= r22:
+        y = 0.5 * math.sqrt(max(1.0 + r11 - r22 - r00, 0.0))
+        four = 4.0 * y
+        z, x, w = (r21 + r12) / four, (r01 + r10) / four, (r02 - r20) / four
     else:
-        a = i - 1
-        b, c = (a + 1) % 3, (a + 2) % 3
-        va = 0.5 * np.sqrt(max(1.0 + r[a, a] - r[b, b] - r[c, c], 0.0))
-        v = np.empty(3)
-        v[a] = va
-        v[b] = (r[b, a] + r[a, b]) / (4.0 * va)
-        v[c] = (r[c, a] + r[a, c]) / (4.0 * va)
-        w = (r[c, b] - r[b, c]) / (4.0 * va)
+        z = 0.5 * math.sqrt(max(1.0 + r22 - r00 - r11, 0.0))
+        four = 4.0 * z
+        x, y, w = (r02 + r20) / four, (r12 + r21) / four, (r10 - r01) / four
     if w < 0:  # the same rotation; this sign keeps the angle in [0, π]
-        w, v = -w, -v
-    norm = float(np.linalg.norm(v))
+        w, x, y, z = -w, -x, -y, -z
+    norm = math.sqrt(x * x + y * y + z * z)
     if norm < 1e-300:
         return np.zeros(3)
-    angle = 2.0 * float(np.arctan2(norm, w))
-    return v * (angle / norm)
+    scale = 2.0 * math.atan2(norm, w) / norm
+    return np.array([x * scale, y * scale, z * scale])
 
 
 def make_transform(rotation: np.ndarray | None = None, translation=None) -> np.ndarray:

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sim_devices._transforms import make_transform, matrix_to_rotvec, rotvec_to_matrix
+from sim_devices.arm._dynamics import rotvec_to_matrix_batch
 from sim_devices.arm._kinematics import SerialArm
 from sim_devices.arm._path import PathPlan
 
@@ -183,6 +184,21 @@ class Motion:
             return self.target_pose.copy()
         rotation = rotvec_to_matrix(u * self._drot) @ self.start_pose[:3, :3]
         return make_transform(rotation, self.start_pose[:3, 3] + u * self._dp)
+
+    def poses_at(self, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The commanded TCP poses (n, 4, 4) and path fractions (n,) at ``times``: ``pose_at`` and
+        ``fraction`` for a batch (the truth grid's samples of one controller cycle), a linear move's
+        poses in one vectorised step."""
+        fractions = np.array([self.fraction(t) for t in times])
+        if self.kind != "linear":
+            return np.array([self.pose_at(t) for t in times]), fractions
+        poses = np.repeat(self.target_pose[None], len(fractions), axis=0)  # a finished row: the target exactly
+        moving = fractions < 1.0
+        if moving.any():
+            u = fractions[moving]
+            poses[moving, :3, :3] = rotvec_to_matrix_batch(u[:, None] * self._drot) @ self.start_pose[:3, :3]
+            poses[moving, :3, 3] = self.start_pose[:3, 3] + u[:, None] * self._dp
+        return poses, fractions
 
     def sample(self, t: float) -> tuple[np.ndarray, np.ndarray]:
         """(joints, TCP pose 4×4) commanded at ``t``."""

@@ -4,18 +4,20 @@ The real socketcand forwards the receive time the kernel stamped on each frame (
 of its CAN socket), not a time the sender chose. Here the moment the twin hands a frame to its
 transports stands for the moment the socketcand host's CAN controller has received it, so:
 
-- a frame's timestamp is the clock thread's actual time when it sends it (with the scheduling
-  jitter the twin really has, not the ideal due time of the sample), plus the receiving kernel's
-  interrupt latency: 5 µs and an exponential tail of mean ``rx_latency`` (capped at 50 times
-  that), drawn from a seeded stream;
+- a sample's frame goes on the bus at the sample's due time on the head's clock (the clock
+  thread sends the samples due in batches of a few milliseconds, each with its own time; a reply
+  goes out when its command is executed), and its timestamp is that time plus the receiving
+  kernel's interrupt latency: 5 µs and an exponential tail of mean ``rx_latency`` (capped at 50
+  times that), drawn from a seeded stream;
 - frames cannot be closer together than the bus can carry them: a standard data frame of ``n``
   bytes takes 47 + 8n bits plus 0..(34 + 8n − 1)/4 stuff bits and 3 bits of interframe space
   (114..138 µs for 8 bytes at 1 Mbit/s), so a reply and the sample sent right after it, or a
   burst of samples a late clock thread catches up with, are spread out as the bus spreads them;
 - frames are received in bus order: the stamps never go backwards.
 
-A frame is handed over when it is stamped; only a frame queued behind others on the bus gets a
-stamp a little ahead of the host's clock (by the bus time of the frames before it).
+A frame is handed over up to a batch (5 ms) after its stamp, as a socketcand daemon forwards the
+frames its kernel queued; a frame queued behind others on the bus gets a stamp a little later
+(by the bus time of the frames before it).
 """
 
 from __future__ import annotations

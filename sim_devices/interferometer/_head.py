@@ -53,6 +53,7 @@ class InterferometerHead:
         self._align_rng = world.rng("interferometer alignment")
         self._noise_rng = world.noise_rng("interferometer noise")
         self._lock = threading.Lock()
+        self._signal_cache: tuple[tuple[np.ndarray, np.ndarray, np.ndarray], float] | None = None
         self._position = world.opr_in_m()[:3, 3].copy()
         world.subscribe(self._on_world)  # cache the OPR position: the feed reads it 1000 times a second
         self.datum_generation = 0
@@ -145,9 +146,17 @@ class InterferometerHead:
 
     # ------------------------------------------------------------------------------ internals
     def _signal_locked(self) -> float:
+        # Read twice per sample at 1 kHz, but it changes only with the reflector's position or the
+        # beam: computed again only then (the arrays are replaced, never changed in place).
+        key = (self._position, self.beam_origin, self.beam_direction)
+        cached = self._signal_cache
+        if cached is not None and all(a is b for a, b in zip(cached[0], key)):
+            return cached[1]
         offset = self._position - self.beam_origin
         lateral = offset - self.beam_direction * float(self.beam_direction @ offset)
-        return 0.95 * float(np.exp(-(np.linalg.norm(lateral) / self.config.lateral_range) ** 2))
+        signal = 0.95 * float(np.exp(-(np.linalg.norm(lateral) / self.config.lateral_range) ** 2))
+        self._signal_cache = (key, signal)
+        return signal
 
     def _beam_ok_locked(self, now_monotonic: float) -> bool:
         return now_monotonic >= self._blocked_until and self._signal_locked() >= self.config.beam_lost_signal
