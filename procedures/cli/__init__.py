@@ -11,12 +11,37 @@ One module per command (``_run``, ``_resume``, ``_runs``, ``_show``, ``_history`
 ``_export``, ``_validate``, ``_locate``, ``_sim``, ``_serve``), with what they share in ``_common`` and the
 progress display in ``_display``. It stands on the engine, the report and the store (and below); the
 ``serve`` command starts the web face (``procedures.serve``), which never imports this package.
+
+Every command module imports at its top only what its parser needs; the stacks a command stands on (the
+engine, the report, the measurement core, the display) load when it runs, so that ``--version``, ``--help``
+and the reading commands start at once (``tests/test_cli_startup.py``).
 """
 
-from procedures.cli._common import ask_pause_key, cell_directory, detach_at_once, drive, signals_control
-from procedures.cli._display import Display
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
 from procedures.cli._main import ERROR_LOG, build_parser, main
-from procedures.cli._sim import endpoint_lines
+
+if TYPE_CHECKING:
+    from procedures.cli._common import ask_pause_key, cell_directory, detach_at_once, drive, signals_control
+    from procedures.cli._display import Display
+    from procedures.cli._sim import endpoint_lines
+
+# Loaded on first use: ``instrument --version`` must not pay for the display (rich) or a run's stack.
+_LAZY = {**dict.fromkeys(("ask_pause_key", "cell_directory", "detach_at_once", "drive", "signals_control"), "_common"),
+         "Display": "_display", "endpoint_lines": "_sim"}
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{module}"), name)
+    globals()[name] = value
+    return value
+
 
 __all__ = ["ERROR_LOG", "Display", "ask_pause_key", "build_parser", "cell_directory", "detach_at_once", "drive",
            "endpoint_lines", "main", "signals_control"]

@@ -24,16 +24,14 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
-from procedures.cli._display import Display
-from procedures.engine import PauseDecision
-from procedures.report import result_lines, result_summary
 from procedures.station import RunError
 from procedures.store import SQLITE_FILE, STORE_ENV, RunState, RunStore, store_location
 
-if TYPE_CHECKING:  # only for annotations: the engine's stack loads with the commands that run one
-    from procedures.engine import RunEngine
+if TYPE_CHECKING:  # only for annotations: the engine's, the report's and the display's stacks load on use
+    from procedures.cli._display import Display
+    from procedures.engine import PauseDecision, RunEngine
 
-__all__ = ["EXIT_CODES", "Display", "add_display", "add_runs_dir", "console_pause_handler", "detach_at_once",
+__all__ = ["EXIT_CODES", "add_display", "add_runs_dir", "console_pause_handler", "detach_at_once",
            "drive", "open_store", "signals_control", "station_for"]
 
 EXIT_CODES = {RunState.FINISHED: 0, RunState.FAILED: 1, RunState.ABORTED: 2, RunState.PAUSED: 3}
@@ -276,6 +274,8 @@ def drive(engine: RunEngine, args: argparse.Namespace, display: Display | None =
     At the end: the run's key results (``procedures.report._summaries``) and its report (written to
     ``<runs>/<run>/report.html``) on stdout, or ``--quiet``'s one line, or ``--jsonl``'s ``done`` event.
     """
+    from procedures.report import result_lines, result_summary
+
     started = time.monotonic()
     with signals_control(engine):
         if display is not None:

@@ -16,7 +16,6 @@ import time
 from typing import Any
 
 from procedures.cli._common import READ_EXIT_CODES, add_runs_dir, open_store
-from procedures.report import changes, figure_columns, history_figures, history_procedures, iso_rows, shown
 
 
 def register(subparsers) -> None:
@@ -34,6 +33,8 @@ def register(subparsers) -> None:
 
 def robot_history(runs: list[dict[str, Any]]) -> dict[str, Any]:
     """The history of one robot's runs (whole rows, oldest first): per point, one entry per run."""
+    from procedures.report import changes, history_figures, iso_rows
+
     points: dict[str, list[dict[str, Any]]] = {}
     keys = history_figures()
     for run in runs:
@@ -49,6 +50,8 @@ def robot_history(runs: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def run(args: argparse.Namespace) -> int:
+    from procedures.report import figure_columns, history_figures, history_procedures, shown  # on use
+
     with open_store(args) as store:
         runs = store.robot_runs(args.robot, procedures=history_procedures())
         known = [r["serial"] for r in store.robots()] if not runs else []
@@ -86,6 +89,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _changed_text(changed: dict[str, float]) -> str:
+    from procedures.report import figure_columns, history_figures
+
     parts = []
     for key, name, unit, scale in figure_columns(history_figures()):
         if key in changed:

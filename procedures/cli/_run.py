@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
+import procedures
 from procedures.cli._common import (
     RUN_EXIT_CODES,
-    Display,
     add_display,
     add_runs_dir,
     add_seed,
@@ -17,11 +18,16 @@ from procedures.cli._common import (
     seconds_value,
     station_for,
 )
-from procedures.engine import PACKAGE_DIR
+
+
+def built_in_names() -> list[str]:
+    """The built-in procedures' names: the YAML files of the ``procedures`` folder, where the engine finds
+    them too (``procedures.engine.PACKAGE_DIR``), listed without loading the engine."""
+    return sorted(path.stem for path in Path(procedures.__file__).resolve().parent.glob("*.yaml"))
 
 
 def register(subparsers) -> None:
-    built_in = ", ".join(sorted(path.stem for path in PACKAGE_DIR.glob("*.yaml")))
+    built_in = ", ".join(built_in_names())
     parser = subparsers.add_parser(
         "run", help="run a procedure on a station",
         description="Dry-run the procedure on the station, then measure; every sample is committed to the run "
@@ -45,6 +51,7 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from procedures.cli._display import Display
     from procedures.engine import open_engine
 
     mode = "jsonl" if args.jsonl else "quiet" if args.quiet else "bar"

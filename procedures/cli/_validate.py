@@ -11,8 +11,6 @@ from __future__ import annotations
 
 import sys
 
-import numpy as np
-
 from procedures.station import ConfigError
 
 
@@ -77,6 +75,8 @@ def _record_problems(station) -> list[str]:
 
 
 def _dry_run(station, procedure) -> tuple[list[str], int]:
+    import numpy as np
+
     from drivers.robot import MotionEnvelope
     from procedures.engine import collapse, offline_problems
     from procedures.kinds import kind_of
