@@ -98,3 +98,15 @@ def test_lazy_names_resolve():
             assert getattr(module, name) is not None, (package, name)
     with pytest.raises(AttributeError):
         importlib.import_module("procedures.station").no_such_name  # noqa: B018
+
+
+def test_validating_files_loads_no_measurement_core(tmp_path):
+    """``validate`` of procedure files needs the files' models (pydantic, the drivers' settings), not scipy,
+    OpenCV, the science, the step context or the report."""
+    status, modules = _loaded(tmp_path, "validate", "iso9283_repeatability", "angle_calibration", "iso9283_path")
+    assert status == 0
+    assert "procedures.kinds" in modules
+    core = ("scipy", "cv2", "rich", "sim_devices", "asyncio", "procedures.report", "procedures.serve",
+            "procedures.station._science", "procedures.engine._step_context", "procedures.engine._live_frames",
+            "instrument.vision", "instrument.pose", "instrument.compensation")
+    assert [m for m in modules if any(m == c or m.startswith(c + ".") for c in core)] == []

@@ -23,7 +23,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import special
 
 from instrument.iso9283 import ISO9283Error
 from instrument.uncertainty._budget import COMPONENTS, Correlation, UncertaintyBudget
@@ -228,6 +227,7 @@ def iso_uncertainty(
     UncertaintyError
         For unusable input (one line naming the argument).
     """
+    from scipy import special
     draws = _count(draws, "draws", 50)
     if not coverage_factor > 0:
         raise UncertaintyError(f"coverage_factor: expected > 0, got {coverage_factor}")

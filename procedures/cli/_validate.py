@@ -10,6 +10,7 @@ repeats over many steps is printed once with the count of the others.
 from __future__ import annotations
 
 import sys
+from pathlib import Path
 
 from procedures.station import ConfigError
 
@@ -29,21 +30,22 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from procedures.engine import detect_kind, load_procedure, load_station  # loads the measurement stack
+    from procedures.engine import detect_kind, load_procedure, load_station
 
     status = 0
     stations, procedures = [], []
     for name in args.files:
         try:
-            if detect_kind(name) == "station":
-                station = load_station(name)
+            path = _resolved(name)
+            if detect_kind(path) == "station":
+                station = load_station(path)
                 stations.append((name, station))
                 record_problems = _record_problems(station)
                 if record_problems:
                     raise ConfigError([f"{name}: {problem}" for problem in record_problems])
                 what = "station"
             else:
-                procedure = load_procedure(name)
+                procedure = load_procedure(path)
                 procedures.append((name, procedure))
                 what = procedure.procedure
         except ConfigError as exc:
@@ -65,6 +67,19 @@ def run(args) -> int:
     elif len(stations) > 1 and procedures:
         print("several stations given: the procedures are not dry-run (give one station)", file=sys.stderr)
     return status
+
+
+def _resolved(name: str) -> str:
+    """A file as named, or the built-in procedure of that name (``instrument run`` resolves it alike); a name
+    that is neither stays as given, for the reader to say why."""
+    from procedures.engine import resolve_procedure_path
+
+    if Path(name).exists():
+        return name
+    try:
+        return str(resolve_procedure_path(name))
+    except ConfigError:
+        return name
 
 
 def _record_problems(station) -> list[str]:

@@ -11,7 +11,6 @@ from typing import Annotated, Any, Union, get_args, get_origin
 from pydantic import BaseModel, ValidationError
 from pydantic_core import ErrorDetails
 
-from instrument.pose import Geometry
 from procedures.kinds import KINDS, ProcedureBase
 from procedures.station import ConfigError, MarkedYaml, StationFile, load_marked
 
@@ -169,6 +168,7 @@ def load_station(path: str | Path, *, check_geometry: bool = True) -> StationFil
 
 def _check_geometry(geometry: dict) -> str | None:
     """Let ``instrument.pose.Geometry.from_dict`` judge the geometry."""
+    from instrument.pose import Geometry
     try:
         Geometry.from_dict(geometry)
     except (TypeError, ValueError, KeyError) as exc:

@@ -38,6 +38,7 @@ from procedures.station._files import InputRefused, read_text_file
 
 if TYPE_CHECKING:
     from procedures.station._geometry import (
+        ANGLE_COMPONENT,
         euler_to_matrix,
         matrix_to_euler,
         matrix_to_ur,
@@ -48,7 +49,6 @@ if TYPE_CHECKING:
     from procedures.station._models import Event, HookSpec, StationFile, Vec3
     from procedures.station._runtime import Operator, StationRuntime
     from procedures.station._science import (
-        ANGLE_COMPONENT,
         CalibrationResult,
         Compensator,
         InstrumentScience,
@@ -60,12 +60,12 @@ if TYPE_CHECKING:
     from procedures.station._yamlmarks import MarkedYaml, load_marked
 
 _LAZY = {
-    **dict.fromkeys(("euler_to_matrix", "matrix_to_euler", "matrix_to_ur", "tcp_in_m", "translated_in_frame",
-                     "ur_to_matrix"), "_geometry"),
+    **dict.fromkeys(("ANGLE_COMPONENT", "euler_to_matrix", "matrix_to_euler", "matrix_to_ur", "tcp_in_m",
+                     "translated_in_frame", "ur_to_matrix"), "_geometry"),
     **dict.fromkeys(("Event", "HookSpec", "StationFile", "Vec3"), "_models"),
     **dict.fromkeys(("Operator", "StationRuntime"), "_runtime"),
-    **dict.fromkeys(("ANGLE_COMPONENT", "CalibrationResult", "Compensator", "InstrumentScience", "MeasurementFailed",
-                     "PoseMeasurement", "Science"), "_science"),
+    **dict.fromkeys(("CalibrationResult", "Compensator", "InstrumentScience", "MeasurementFailed", "PoseMeasurement",
+                     "Science"), "_science"),
     "TruthLog": "_truth",
     **dict.fromkeys(("MarkedYaml", "load_marked"), "_yamlmarks"),
 }

@@ -11,7 +11,7 @@ transform fitted on the true positions of the transform pass (see docs/results.m
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -23,8 +23,11 @@ from procedures.kinds._protocol import RESULTS_VERSION, AnalysisContext
 from procedures.kinds.iso._budget import BudgetUnavailable, iso_budget, squareness_terms
 from procedures.kinds.iso._parameters import IsoParameters
 from procedures.kinds.iso._test_conditions import deviations_of, test_conditions
-from procedures.station import Compensator, euler_to_matrix, matrix_to_euler, tcp_in_m, ur_to_matrix
+from procedures.station import euler_to_matrix, matrix_to_euler, tcp_in_m, ur_to_matrix
 from procedures.store import Sample
+
+if TYPE_CHECKING:
+    from procedures.station import Compensator
 
 DISTANCE_PAIR = ("P2", "P4")  # ISO 9283 §7.? distance accuracy and repeatability: P2 → P4 (the cube's diagonal)
 LINEAR_FIGURES = {"rp_l", "ap_p", "ap_x", "ap_y", "ap_z"}
