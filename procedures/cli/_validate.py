@@ -9,6 +9,7 @@ repeats over many steps is printed once with the count of the others.
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 
@@ -70,8 +71,9 @@ def run(args) -> int:
 
 
 def _resolved(name: str) -> str:
-    """A file as named, or the built-in procedure of that name (``instrument run`` resolves it alike); a name
-    that is neither stays as given, for the reader to say why."""
+    """A file as named, or the built-in procedure of that name (``instrument run`` resolves it alike). A bare
+    name that is neither is refused as ``run`` refuses it (with the nearest built-in); a path stays as given,
+    for the reader to say why it cannot be read."""
     from procedures.engine import resolve_procedure_path
 
     if Path(name).exists():
@@ -79,7 +81,9 @@ def _resolved(name: str) -> str:
     try:
         return str(resolve_procedure_path(name))
     except ConfigError:
-        return name
+        if Path(name).suffix or "/" in name or os.sep in name:
+            return name
+        raise
 
 
 def _record_problems(station) -> list[str]:
