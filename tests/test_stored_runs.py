@@ -182,6 +182,11 @@ def test_runs_stored_by_410f450_show_report_and_export_byte_for_byte(runs_410f45
             report = produced[f"report {run['id']}"]
             assert report.count(title.encode()) == 3  # <title>, <h1> and the printed pages' footer
             produced[f"report {run['id']}"] = report.replace(title.encode(), run["procedure_name"].encode())
+    for run in _stored(runs_410f450):  # show's title line (issue 27): the kind's title, from the parameters in force
+        shown = produced[f"show {run['id']}"].decode()
+        title_line = f"title      {KINDS[run['procedure']].title(run['parameters'], run['results'])}\n"
+        assert shown.splitlines(keepends=True)[1] == title_line
+        produced[f"show {run['id']}"] = shown.replace(title_line, "", 1).encode()
     produced["history"], produced["history --json"] = _as_before_compensation_groups(produced["history"],
                                                                                      produced["history --json"])
     differ = [name for name in expected if digest(produced[name]) != expected[name]]

@@ -48,6 +48,7 @@ VARIABLES: tuple[tuple[str, ua.VariantType, Any, str], ...] = (
     ("State", V.String, "IDLE", "IDLE, STARTING, QUEUED, RUNNING, PAUSING, PAUSED, FINISHED, FAILED or ABORTED"),
     ("RunId", V.String, "", "the current run (the one started here, else the newest active or newest run)"),
     ("Procedure", V.String, "", "its procedure kind"),
+    ("Title", V.String, "", "its title, from the parameters in force (a run with --set cycles=3: '... 3 cycles')"),
     ("Station", V.String, "", "its station name"),
     ("Reason", V.String, "", "why it paused, failed or was aborted"),
     ("LastMessage", V.String, "", "the outcome of the last method call, one line"),
@@ -228,6 +229,7 @@ class InstrumentOpcUa:
         await self._set("State", state)
         await self._set("RunId", run["id"] if run else "")
         await self._set("Procedure", run["procedure"] if run else "")
+        await self._set("Title", run["title"] if run else "")
         await self._set("Station", (run["station"] or "") if run else "")
         await self._set("Reason", (run["reason"] or "") if run else "")
         done, total = (run["done"] or 0, run["total"] or 0) if run else (0, 0)

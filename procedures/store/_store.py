@@ -367,6 +367,10 @@ class RunStore:
         return [self.get_run(row["id"]) for row in self.list_runs(states=states, procedure=procedure,
                                                                   procedures=procedures, robot=serial)]
 
+    def parameters_of(self) -> dict[str, dict[str, Any]]:
+        """Every run's parameters in force (``--set`` included), by run id: what a list of runs titles them by."""
+        return {row["id"]: json.loads(row["parameters"]) for row in self._db.rows("SELECT id, parameters FROM runs")}
+
     def robots(self) -> list[dict[str, Any]]:
         """The robots the store has runs of: serial, manufacturer, model, number of runs, first and last run time."""
         return self._db.rows(
