@@ -55,6 +55,9 @@ def test_an_iso_run_ends_with_its_rp_table_and_report(tmp_path, capsys):
     assert f"{stats['rp_l'] * 1e6:.2f} ± {(hi - lo) / 2 * 1e6:.2f}" in p4  # the interval's half-width, no U here
     assert f"{stats['ap_p'] * 1e6:.2f}" in p4
     assert any("half-width of the 95 % confidence interval" in line for line in out)
+    assert run["results"]["compensation"] == []  # no calibration record in force: the table says so
+    assert ("uncompensated: no calibration record was in force, so these figures carry the instrument's own "
+            "systematic errors (run the calibrations, then measure with their records in force)") in out
     report = Path(out[-1].removeprefix("report: "))
     assert report == tmp_path / "runs" / run["id"] / "report.html" and run["id"] in report.read_text()
 
