@@ -85,10 +85,13 @@ def _argument(name: str, description: str) -> ua.Argument:
 
 
 def opc_name(stat: str) -> str:
-    """``rp_l`` → ``RP_l``, ``rp_l_ci`` → ``RP_l_CI``, ``rp_l_u`` → ``RP_l_U``, ``n`` → ``N`` (the ISO 9283 symbols)."""
+    """``rp_l`` → ``RP_l``, ``rp_l_ci`` → ``RP_l_CI``, ``rp_l_u`` → ``RP_l_U``, ``ap_p`` → ``AP_P``, ``n`` → ``N``
+    (the ISO 9283 symbols: positional accuracy is AP_P, its components AP_x … AP_c)."""
     parts = stat.split("_")
     if parts[0] in ("rp", "ap", "s"):
         parts[0] = parts[0].upper()
+    if parts[:2] == ["AP", "p"]:
+        parts[1] = "P"
     if parts[-1] in ("ci", "u"):
         parts[-1] = parts[-1].upper()
     return "_".join(parts) if len(parts) > 1 else stat.upper()
