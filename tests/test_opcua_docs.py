@@ -100,3 +100,36 @@ def test_every_documented_node_is_in_the_servers_address_space(tmp_path):
     fixed = [path for path in declared if not re.match(r"Results\.P\d\.", path)]
     assert len(fixed) > 20
     assert sorted(set(fixed) - set(documented_variables())) == []  # and what the server has, the document names
+
+
+def test_start_run_passes_overrides_as_set_and_writes_no_procedure_copy(tmp_path):
+    """StartRun's overrides reach the run as ``instrument run --set`` (stored with it: its parameters and its
+    title); a refused StartRun leaves nothing behind, an accepted one only its process's log."""
+    from procedures.serve import LaunchRefused, RunLauncher
+
+    runs = tmp_path / "runs"
+
+    async def body() -> None:
+        launcher = RunLauncher(runs)
+        try:
+            for overrides in ("cycles=1", "cyclez=3", "cycles"):
+                with pytest.raises(LaunchRefused):
+                    await launcher.start_run("iso9283_repeatability", "sim", overrides)
+            assert not (runs / "serve").exists() or list((runs / "serve").iterdir()) == []
+            launch = await launcher.start_run("iso9283_repeatability", "sim", "cycles=3; settle_time_s=0")
+            for _ in range(900):  # until the run is in the store; closing the launcher then aborts it
+                if launch.run_id is not None or not launch.alive:
+                    break
+                await asyncio.sleep(0.2)
+            assert launch.run_id is not None
+        finally:
+            await launcher.close()
+
+    asyncio.run(body())
+    assert [path.suffix for path in (runs / "serve").iterdir()] == [".log"]  # no procedure copy
+    with RunStore(runs) as store:
+        (row,) = store.list_runs()
+        run = store.get_run(row["id"])
+    assert run["parameters"]["cycles"] == 3 and run["parameters"]["settle_time_s"] == 0
+    assert run["procedure_text"].startswith(
+        "# iso9283_repeatability.yaml run with --set cycles=3 --set settle_time_s=0")
