@@ -136,6 +136,21 @@ def test_heartbeat_lines_when_stderr_is_not_a_terminal(tmp_path, capsys):
     assert any(line.endswith("FINISHED") for line in lines)
 
 
+def test_after_the_last_pose_the_heartbeat_says_analysing_with_its_own_eta(tmp_path):
+    """Once every pose is measured the heartbeat says what runs (the analysis, k of N passes, its own ETA), not
+    'waiting N s since the last pose' with the poses' ETA."""
+    stream = io.StringIO()
+    display = Display("bar", stream=stream, heartbeat_s=0.2)
+    _drive(tmp_path, _procedure(tmp_path, "iso9283_repeatability", cycles=3), display)
+    assert display.analysis == {**display.analysis, "event": "analysis", "stage": "results", "done": 0}
+    display.last_progress = {**display.last_progress, "time": 0.0}  # the last pose long ago
+    assert "analysing the results · 20/20 poses measured · ETA" in display.status_line()
+    display(dict(event="analysis", stage="uncertainty", done=3, total=9, eta_s=125.0))
+    line = display.status_line()
+    assert line.endswith("analysing (uncertainty, 3 of 9) · 20/20 poses measured · ETA 0:02:05")
+    assert "waiting" not in line
+
+
 def test_the_terminal_display_fits_its_width(tmp_path, monkeypatch):
     class Terminal(io.StringIO):
         def isatty(self) -> bool:

@@ -303,10 +303,20 @@ class RunEngine:
         return dict(self.store.streams(self.run_id, steps))
 
     def _analyse(self) -> None:
+        started = time.monotonic()
+
+        def progress(stage: str, done: int, total: int) -> None:
+            """The analysis' own progress and ETA (at the pace of its passes so far) for the faces."""
+            elapsed = time.monotonic() - started
+            eta = elapsed / done * (total - done) if done > 0 else None
+            self._emit("analysis", stage=stage, done=done, total=total, eta_s=eta)
+
+        self._emit("analysis", stage="results", done=0, total=None, eta_s=None)
         context = AnalysisContext(run_id=self.run_id, station=self.station.model, science=self.science,
                                   compensators=self.compensators, run_dir=self.store.run_dir(self.run_id),
                                   truth=_truth_log(self.station.model),
-                                  streams=self._streams, sessions=self.store.sessions(self.run_id))
+                                  streams=self._streams, sessions=self.store.sessions(self.run_id),
+                                  progress=progress)
         analysis = self.kind.analyse(self.store.samples(self.run_id), self.params, context)
         if analysis.calibration_record_id is not None:
             self.store.update_run(self.run_id, calibration_record_id=analysis.calibration_record_id)

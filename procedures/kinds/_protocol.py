@@ -219,6 +219,8 @@ class AnalysisContext:
     """The run's stored pose streams by step (``RunStore.streams``), of the given steps or all."""
     sessions: Sequence[SessionConditions] = ()
     """The test conditions of each session of the run, oldest first (``RunStore.sessions``)."""
+    progress: Callable[[str, int, int], None] | None = None
+    """``progress(stage, k, n)``: how far a long analysis is (``"uncertainty", 3, 9``), for the faces' progress."""
 
 
 @dataclass(frozen=True)
