@@ -207,6 +207,15 @@ def test_a_run_records_the_robot_it_measured(tmp_path, capsys):
     assert RunState(run["state"]) == RunState.FINISHED
 
 
+def test_every_kind_records_the_cells_robot(tmp_path):
+    """The angle calibration does not move the robot, but its run belongs to that robot's cell: it records the
+    robot too, so the faces list the robot once (not once by serial and once by station name)."""
+    _, run = _drive(tmp_path, _procedure(tmp_path, "angle_calibration", axes="[z]", repeats=2, step_deg=0.5),
+                    Display("quiet"))
+    assert RunState(run["state"]) == RunState.FINISHED, run["reason"]
+    assert run["robot_serial"] == "20235500123" and run["robot_model"] == "UR5"
+
+
 def test_the_demos_eta_adds_the_runs_still_to_come():
     from procedures.demo import DemoProgress
 
