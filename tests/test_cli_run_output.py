@@ -227,3 +227,12 @@ def test_the_demos_eta_adds_the_runs_still_to_come():
     assert progress.later_s() == pytest.approx(20 * 0.3 + 1 * 2.0 + 4.0)
     progress.current = 2
     assert progress.later_s() == 0.0
+
+
+@pytest.mark.parametrize(("warm_up_s", "listed"), [(0, True), (600, False)])
+def test_no_warm_up_is_a_deviation(tmp_path, warm_up_s, listed):
+    """ISO 9283 tests a warm robot: a run with no warm-up (0 s declared, none run) lists it as a deviation."""
+    _, run = _drive(tmp_path, _procedure(tmp_path, "iso9283_repeatability", cycles=2, warm_up_s=warm_up_s),
+                    Display("quiet"))
+    codes = [d["code"] for d in run["results"]["deviations"]]
+    assert ("no_warm_up" in codes) is listed
