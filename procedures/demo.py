@@ -5,12 +5,16 @@ ISO 9283 repeatability cycle (5 points × 30 cycles) with the two calibration re
 writes the HTML report, and prints the ISO table with the cell's ground truth beside the measured
 figures.
 
-Run it with ``make demo`` or ``python -m procedures.demo [--cycles N] [--quick]``.
+Run it with ``make demo`` or ``python -m procedures.demo [--cycles N] [--quick]``. Ctrl-C pauses the run
+under way at its next safe point, as ``instrument run`` does (on a terminal: [Enter] resume, [a] abort,
+[q] leave it paused and end the demo, with the ``instrument resume`` command that continues it); a second
+Ctrl-C aborts it.
 """
 
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
 import time
 from pathlib import Path
@@ -20,7 +24,7 @@ import numpy as np
 import yaml
 
 from instrument import ARCSEC
-from procedures.cli import Display
+from procedures.cli import Display, console_pause_handler, resume_command, signals_control
 from procedures.engine import open_engine, resolve_procedure_path
 from procedures.report import render_report
 from procedures.store import RunState, RunStore
@@ -89,15 +93,21 @@ def run_procedure(runs_dir: Path, procedure: Path, station: Path, quiet: bool,
                       later_s=progress.later_s if progress is not None else None)
     if progress is not None:
         progress.display = display
-    with open_engine(runs_dir, procedure=procedure, station=station, listener=display) as engine:
+    with open_engine(runs_dir, procedure=procedure, station=station, listener=display,
+                     pause_handler=lambda engine: console_pause_handler(engine, display)) as engine:
         where = f"{phase[0]}/{phase[1]} " if phase else ""
         print(f"\n== {where}{engine.procedure.procedure}: run {engine.run_id}", file=sys.stderr, flush=True)
-        with display:
+        with signals_control(engine), display:  # Ctrl-C pauses at the next safe point, a second one aborts
             state = engine.execute()
         run = engine.store.get_run(engine.run_id)
     elapsed = time.monotonic() - started
     print(f"   {state} in {elapsed:.0f} s" + (f" — {run['reason']}" if run["reason"] else ""), file=sys.stderr,
           flush=True)
+    if state == RunState.PAUSED:
+        command = resume_command(argparse.Namespace(runs_dir=runs_dir), run["id"])
+        print(f"demo: {procedure.stem} left paused; continue it with: {command} (the demo's later runs were not "
+              "started)", file=sys.stderr, flush=True)
+        raise SystemExit(3)
     if state != RunState.FINISHED:
         raise SystemExit(f"demo: {procedure.name} ended {state}: {run['reason']}")
     if progress is not None:
@@ -152,7 +162,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--time-scale", type=float, default=4.0,
                         help="simulated seconds per wall second for robot and table motion (default 4)")
     args = parser.parse_args(argv)
+    try:
+        return _demo(args)
+    except KeyboardInterrupt:  # outside a run (the cell starting, between runs, the report): nothing to keep
+        print("demo: interrupted", file=sys.stderr)
+        return 130
+    finally:
+        if argv is None:  # the process is ours: its shutdown must not be cut short by another Ctrl-C
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
 
+
+def _demo(args: argparse.Namespace) -> int:
     from sim_devices.cell import SimCell
 
     started = time.monotonic()

@@ -55,6 +55,9 @@ def test_an_iso_run_ends_with_its_rp_table_and_report(tmp_path, capsys):
     assert f"{stats['rp_l'] * 1e6:.2f} ± {(hi - lo) / 2 * 1e6:.2f}" in p4  # the interval's half-width, no U here
     assert f"{stats['ap_p'] * 1e6:.2f}" in p4
     assert any("half-width of the 95 % confidence interval" in line for line in out)
+    assert run["results"]["compensation"] == []  # no calibration record in force: the table says so
+    assert ("uncompensated: no calibration record was in force, so these figures carry the instrument's own "
+            "systematic errors (run the calibrations, then measure with their records in force)") in out
     report = Path(out[-1].removeprefix("report: "))
     assert report == tmp_path / "runs" / run["id"] / "report.html" and run["id"] in report.read_text()
 
@@ -133,6 +136,21 @@ def test_heartbeat_lines_when_stderr_is_not_a_terminal(tmp_path, capsys):
     assert any(line.endswith("FINISHED") for line in lines)
 
 
+def test_after_the_last_pose_the_heartbeat_says_analysing_with_its_own_eta(tmp_path):
+    """Once every pose is measured the heartbeat says what runs (the analysis, k of N passes, its own ETA), not
+    'waiting N s since the last pose' with the poses' ETA."""
+    stream = io.StringIO()
+    display = Display("bar", stream=stream, heartbeat_s=0.2)
+    _drive(tmp_path, _procedure(tmp_path, "iso9283_repeatability", cycles=3), display)
+    assert display.analysis == {**display.analysis, "event": "analysis", "stage": "results", "done": 0}
+    display.last_progress = {**display.last_progress, "time": 0.0}  # the last pose long ago
+    assert "analysing the results · 20/20 poses measured · ETA" in display.status_line()
+    display(dict(event="analysis", stage="uncertainty", done=3, total=9, eta_s=125.0))
+    line = display.status_line()
+    assert line.endswith("analysing (uncertainty, 3 of 9) · 20/20 poses measured · ETA 0:02:05")
+    assert "waiting" not in line
+
+
 def test_the_terminal_display_fits_its_width(tmp_path, monkeypatch):
     class Terminal(io.StringIO):
         def isatty(self) -> bool:
@@ -189,6 +207,15 @@ def test_a_run_records_the_robot_it_measured(tmp_path, capsys):
     assert RunState(run["state"]) == RunState.FINISHED
 
 
+def test_every_kind_records_the_cells_robot(tmp_path):
+    """The angle calibration does not move the robot, but its run belongs to that robot's cell: it records the
+    robot too, so the faces list the robot once (not once by serial and once by station name)."""
+    _, run = _drive(tmp_path, _procedure(tmp_path, "angle_calibration", axes="[z]", repeats=2, step_deg=0.5),
+                    Display("quiet"))
+    assert RunState(run["state"]) == RunState.FINISHED, run["reason"]
+    assert run["robot_serial"] == "20235500123" and run["robot_model"] == "UR5"
+
+
 def test_the_demos_eta_adds_the_runs_still_to_come():
     from procedures.demo import DemoProgress
 
@@ -200,3 +227,12 @@ def test_the_demos_eta_adds_the_runs_still_to_come():
     assert progress.later_s() == pytest.approx(20 * 0.3 + 1 * 2.0 + 4.0)
     progress.current = 2
     assert progress.later_s() == 0.0
+
+
+@pytest.mark.parametrize(("warm_up_s", "listed"), [(0, True), (600, False)])
+def test_no_warm_up_is_a_deviation(tmp_path, warm_up_s, listed):
+    """ISO 9283 tests a warm robot: a run with no warm-up (0 s declared, none run) lists it as a deviation."""
+    _, run = _drive(tmp_path, _procedure(tmp_path, "iso9283_repeatability", cycles=2, warm_up_s=warm_up_s),
+                    Display("quiet"))
+    codes = [d["code"] for d in run["results"]["deviations"]]
+    assert ("no_warm_up" in codes) is listed

@@ -80,9 +80,11 @@ def test_history_flags_a_change_beyond_the_uncertainties_only(runs_dir, capsys):
 
 def test_history_of_an_unknown_robot_names_the_known_ones(runs_dir, capsys):
     runs, _ = runs_dir
-    assert main(["history", "--robot", "nope", "--runs-dir", str(runs)]) == 0
-    assert capsys.readouterr().out.strip() == f"no finished ISO 9283 run of robot nope (robots in the store: " \
-                                              f"{SERIAL}, OTHER-1)"
+    for extra in ([], ["--json"]):  # a wrong serial is a wrong input: one line on stderr, exit 1
+        assert main(["history", "--robot", "nope", "--runs-dir", str(runs), *extra]) == 1
+        out, err = capsys.readouterr()
+        assert out == ""
+        assert err.splitlines() == [f"no finished ISO 9283 run of robot nope (robots in the store: {SERIAL}, OTHER-1)"]
 
 
 def test_figures_fall_back_to_the_sampling_interval():
@@ -160,3 +162,35 @@ def test_the_reported_figure_objects_win_over_the_raw_statistics():
     assert points["P1"]["rp_l"] == 37.72e-6 and points["P1"]["rp_l_u"] == 1.91e-6
     assert points["P1"]["rp_l_ci"] == pytest.approx([32.84e-6, 43.44e-6])  # the sampling interval stays
     assert "rp_l_u" not in points["P2"] and points["P2"]["rp_l"] == 38.14e-6
+
+
+def test_history_separates_compensated_from_uncompensated_runs(tmp_path, capsys):
+    """An uncompensated run carries the instrument's own systematic error: it is shown apart, and a change
+    is judged against the previous run of the same kind only (50 µm uncompensated beside 32 µm compensated
+    is no change of the robot)."""
+    def results(rp_l: float, records: list[str]) -> dict:
+        return {**_iso_results(rp_l, u=1e-6), "compensation": records}
+
+    with RunStore(tmp_path) as store:
+        compensated = [_add(store, results(32e-6, ["sha256:d", "sha256:a"])),
+                       _add(store, results(32.2e-6, ["sha256:d", "sha256:a"]))]
+        uncompensated = [_add(store, results(50e-6, [])), _add(store, results(60e-6, []))]
+        _add(store, results(32.1e-6, ["sha256:d", "sha256:a"]))
+    assert main(["history", "--robot", SERIAL, "--runs-dir", str(tmp_path)]) == 0
+    tables: dict[str, list[list[str]]] = {}
+    for block in capsys.readouterr().out.split("\n\n")[1:-1]:
+        heading, _, *rows = block.splitlines()
+        tables[heading] = [row.split() for row in rows]
+    comp = "P1 — compensated (calibration records in force)"
+    uncomp = "P1 — uncompensated (no calibration record: the figures include the instrument's own errors)"
+    assert list(tables)[:2] == [comp, uncomp]
+    assert [row[2] for row in tables[comp]][:2] == [run_id[:8] for run_id in compensated]
+    assert [row[2] for row in tables[uncomp]] == [run_id[:8] for run_id in uncompensated]
+    assert not any("!" in row for row in tables[comp])  # 32 µm after 60 µm uncompensated: no change flagged
+    assert tables[uncomp][0][4:6] == ["50.00", "±"] and "!" not in tables[uncomp][0]
+    assert tables[uncomp][1][4:8] == ["60.00", "±", "1.00", "!"]  # 50 → 60 µm, both uncompensated: flagged
+    assert main(["history", "--robot", SERIAL, "--runs-dir", str(tmp_path), "--json"]) == 0
+    entries = json.loads(capsys.readouterr().out)["points"]["P1"]
+    assert [e["compensation"] for e in entries] == ["compensated"] * 2 + ["uncompensated"] * 2 + ["compensated"]
+    assert entries[0]["records"] == ["sha256:d", "sha256:a"] and entries[2]["records"] == []
+    assert entries[2]["changed"] == {} and entries[4]["changed"] == {}

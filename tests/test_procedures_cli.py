@@ -80,3 +80,27 @@ def test_export_and_report(runs_dir, tmp_path, capsys):
 def test_missing_store_is_a_clear_message(tmp_path, capsys):
     assert main(["runs", "--runs-dir", str(tmp_path / "none")]) == 1
     assert capsys.readouterr().err.startswith("no run store in")
+
+
+def test_a_run_is_titled_by_the_parameters_in_force(tmp_path, capsys):
+    """The built-in file is named "..., 30 cycles"; a run of it with ``--set cycles=3`` is titled "3 cycles" by
+    show, the web view's list and live page (and so OPC UA's Title), never by the file's name."""
+    from procedures.serve import StoreReader
+
+    station = write_station(tmp_path / "station.yaml")
+    cell = FakeCell(seed=4)
+    with open_engine(tmp_path / "runs", procedure="iso9283_repeatability", station=station,
+                     science=FakeScience(cell), devices=cell.devices(), operator=cell.operator,
+                     overrides=["cycles=3", "settle_time_s=0", "frames_per_pose=1"]) as engine:
+        assert engine.procedure.name == "ISO 9283 pose repeatability, 30 cycles"
+        engine.execute()
+        run_id = engine.run_id
+    assert main(["show", run_id, "--runs-dir", str(tmp_path / "runs")]) == 0
+    shown = capsys.readouterr().out.splitlines()
+    assert shown[1] == "title      ISO 9283 pose repeatability and accuracy — 3 cycles"
+    reader = StoreReader(tmp_path / "runs")
+    try:
+        assert [r["title"] for r in reader.runs()] == ["ISO 9283 pose repeatability and accuracy — 3 cycles planned"]
+        assert reader.snapshot(run_id)["run"]["title"] == "ISO 9283 pose repeatability and accuracy — 3 cycles"
+    finally:
+        reader.close()

@@ -130,6 +130,20 @@ def test_rp_table_shows_the_stored_figures_in_micrometres_and_arcseconds(iso5):
     assert rows["worst case"][2] == f"{results['points'][worst]['stats']['rp_l'] * 1e6:.2f}\nat {worst}"
 
 
+def test_true_rows_only_where_like_for_like_and_said_so(iso5):
+    """RP's true rows compare like for like; the cell's true AP does not (its true tool point carries mounting
+    errors the instrument cannot see), so the AP table has none and the note says why, for old and new runs."""
+    run, samples, events = iso5
+    for shown in (run, with_stored_figures(as_stored_by_older_code(run))):
+        html = render_report(shown, samples, events)
+        tables = Tables(html)
+        assert any(label.endswith("(true)") for label in rows_by_label(tables.find("Pose repeatability RP")))
+        assert not any(label.endswith("(true)") for label in rows_by_label(tables.find("Pose accuracy AP")))
+        text = " ".join(html.split())
+        assert "Pose accuracy has no true row" in text and "like with like" not in text
+        assert "like for like and measured − true is the instrument's error" in text
+
+
 def test_ap_table_has_components_and_a_worst_case_by_magnitude(iso5):
     run, samples, events = iso5
     results = run["results"]

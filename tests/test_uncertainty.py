@@ -388,3 +388,15 @@ def test_calibration_residual_uncertainty_covers_the_residual_against_truth():
         calibration_residual_uncertainty([1.0], [1.0], [0], component="q")
     with pytest.raises(UncertaintyError, match="points: expected 2 labels"):
         calibration_residual_uncertainty([1.0, 2.0], [1.0, 2.0], [0], component="x")
+
+
+def test_iso_uncertainty_reports_how_far_it_is():
+    """``progress(k, n)`` after each Monte Carlo pass: the budget's, then one per active term; same result."""
+    budget = only(term("noise", "pose", [1 * UM, 0, 0, 0, 0, 0]), term("scale", "pose", [0, 1 * UM, 0, 0, 0, 0]),
+                  term("off", "pose", [0, 0, 0, 0, 0, 0]))  # inactive: no pass
+    calls: list[tuple[int, int]] = []
+    with_progress = iso_uncertainty(scatter_run(n=10), budget, draws=60, contribution_draws=50,
+                                    progress=lambda k, n: calls.append((k, n)))
+    assert calls == [(1, 3), (2, 3), (3, 3)]
+    without = iso_uncertainty(scatter_run(n=10), budget, draws=60, contribution_draws=50)
+    assert with_progress.to_dict() == without.to_dict()

@@ -7,7 +7,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from drivers._errors import MotionRefused
 
@@ -50,6 +49,7 @@ class MotionEnvelope:
 
     def check_pose(self, pose: np.ndarray, device: str = "robot") -> None:
         """Raise ``MotionRefused`` if ``pose`` ([x, y, z, rx, ry, rz]) lies outside the envelope."""
+        from scipy.spatial.transform import Rotation
         pose = np.asarray(pose, dtype=float)
         if pose.shape != (6,) or not np.all(np.isfinite(pose)):
             raise MotionRefused(device, "check target", f"target must be 6 finite numbers, got {pose!r}")

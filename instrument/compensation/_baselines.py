@@ -5,8 +5,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import cho_factor, cho_solve
-from scipy.optimize import minimize
 
 
 @dataclass(frozen=True)
@@ -130,6 +128,8 @@ def fit_gaussian_process(x: np.ndarray, y: np.ndarray, w: np.ndarray, *, point_v
     -------
     GaussianProcessCurve
     """
+    from scipy.linalg import cho_factor, cho_solve
+    from scipy.optimize import minimize
     x, y, w = (np.asarray(v, float) for v in (x, y, w))
     order = np.argsort(x)
     x, y, w = x[order], y[order], w[order]

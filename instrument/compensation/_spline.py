@@ -21,10 +21,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
+from typing import TYPE_CHECKING
 
 import numpy as np
-from scipy.interpolate import CubicSpline
-from scipy.optimize import minimize_scalar
+
+if TYPE_CHECKING:  # scipy's interpolation and optimisation load when a spline is fitted or evaluated
+    from scipy.interpolate import CubicSpline
 
 
 def reinsch_penalty(u: np.ndarray) -> np.ndarray:
@@ -56,6 +58,7 @@ def reinsch_penalty(u: np.ndarray) -> np.ndarray:
 def natural_spline_basis(knots: np.ndarray, u: np.ndarray) -> np.ndarray:
     """Matrix B with B @ values = natural cubic spline through (knots, values) at ``u``, continued
     linearly beyond the knots."""
+    from scipy.interpolate import CubicSpline
     u = np.atleast_1d(np.asarray(u, dtype=float))
     spline = CubicSpline(knots, np.eye(knots.size), bc_type="natural")
     inside = np.clip(u, knots[0], knots[-1])
@@ -126,6 +129,7 @@ def smooth(u: np.ndarray, y: np.ndarray, w: np.ndarray, criterion: str = "gcv", 
     SmoothingFit
         ``fitted`` are the natural-spline values s at the knots (the u² term excluded).
     """
+    from scipy.optimize import minimize_scalar
     n = u.size
     if n < 3:
         raise ValueError(f"a smoothing spline needs at least 3 distinct points, got {n}")
@@ -202,6 +206,7 @@ class SplineCurve:
 
     @cached_property
     def _spline(self) -> CubicSpline:
+        from scipy.interpolate import CubicSpline
         return CubicSpline(self.knots_u, self.values, bc_type="natural")
 
     def predict(self, x: np.ndarray) -> np.ndarray:

@@ -24,7 +24,6 @@ Every bootstrap draws ``samples`` resamples from a generator seeded by ``seed``:
 from __future__ import annotations
 
 import numpy as np
-from scipy import stats
 
 from instrument.iso9283._errors import ISO9283Error
 
@@ -41,6 +40,7 @@ def check_confidence(confidence: float, n: int) -> float:
 
 
 def chi_square_interval(three_sigma: float, n: int, confidence: float) -> tuple[float, float]:
+    from scipy import stats
     alpha = 1.0 - confidence
     dof = n - 1
     return (
@@ -50,6 +50,7 @@ def chi_square_interval(three_sigma: float, n: int, confidence: float) -> tuple[
 
 
 def t_interval(mean: float, std: float, n: int, confidence: float) -> tuple[float, float]:
+    from scipy import stats
     half = float(stats.t.ppf(0.5 + confidence / 2.0, n - 1) * std / np.sqrt(n))
     return (mean - half, mean + half)
 

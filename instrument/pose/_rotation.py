@@ -10,7 +10,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 _EYE = np.eye(3)
 
@@ -122,6 +121,7 @@ class Pose:
     @classmethod
     def from_rotvec_pose(cls, vector) -> Pose:
         """From [x, y, z, rx, ry, rz] with a rotation vector (UR / station file convention)."""
+        from scipy.spatial.transform import Rotation
         v = np.asarray(vector, dtype=float).reshape(-1)
         if v.shape != (6,) or not np.all(np.isfinite(v)):
             raise ValueError(f"Pose.from_rotvec_pose: expected 6 finite numbers, got {vector!r}")
@@ -152,6 +152,7 @@ class Pose:
         return np.concatenate([self.translation, self.euler])
 
     def as_rotvec_pose(self) -> np.ndarray:
+        from scipy.spatial.transform import Rotation
         return np.concatenate([self.translation, Rotation.from_matrix(self.rotation).as_rotvec()])
 
     # ------------------------------------------------------------------ algebra
@@ -171,6 +172,7 @@ class Pose:
 
     def rotation_angle_to(self, other: Pose) -> float:
         """Angle of the relative rotation between two poses, rad."""
+        from scipy.spatial.transform import Rotation
         # Via the rotation vector: arccos of the trace loses precision below ~1e-8 rad.
         return float(Rotation.from_matrix(self.rotation.T @ other.rotation).magnitude())
 

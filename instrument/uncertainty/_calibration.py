@@ -15,7 +15,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy import special
 
 from instrument.uncertainty._budget import COMPONENTS, Distribution
 from instrument.uncertainty._errors import UncertaintyError
@@ -66,6 +65,7 @@ def calibration_residual_uncertainty(
     FigureUncertainty
         name ``residual_rms_<component>``; contributions "reference noise" and "reference scale".
     """
+    from scipy import special
     if component not in COMPONENTS:
         raise UncertaintyError(f"component: expected one of x, y, z, a, b, c, got {component!r}")
     r = _vector(residuals, "residuals")

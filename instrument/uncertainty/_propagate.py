@@ -18,12 +18,11 @@ recomputes every figure with ``instrument.iso9283`` and summarises each figure's
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import special
 
 from instrument.iso9283 import ISO9283Error
 from instrument.uncertainty._budget import COMPONENTS, Correlation, UncertaintyBudget
@@ -200,6 +199,7 @@ def iso_uncertainty(
     correct_bias: bool = True,
     contributions: bool = True,
     contribution_draws: int | None = None,
+    progress: Callable[[int, int], None] | None = None,
 ) -> IsoUncertainty:
     """Measurement uncertainty of every ISO 9283 figure of a run, by Monte Carlo.
 
@@ -218,6 +218,8 @@ def iso_uncertainty(
     correct_bias : bool, correct the noise bias (default) or carry it in U
     contributions : bool, also evaluate each term's contribution (one extra Monte Carlo per term)
     contribution_draws : int, draws of each of those (default max(200, draws // 4))
+    progress : callable(k, n), optional; called after each of the n Monte Carlo passes (the budget's, then
+        one per term for the contributions), so that a caller can say how far the evaluation is
 
     Returns
     -------
@@ -228,6 +230,7 @@ def iso_uncertainty(
     UncertaintyError
         For unusable input (one line naming the argument).
     """
+    from scipy import special
     draws = _count(draws, "draws", 50)
     if not coverage_factor > 0:
         raise UncertaintyError(f"coverage_factor: expected > 0, got {coverage_factor}")
@@ -246,7 +249,11 @@ def iso_uncertainty(
     measured = {s.label: s.tool for s in sets}
     baseline = _evaluate_all(evaluators, measured)
     rng = np.random.default_rng(seed)
+    passes = 1 + (sum(1 for term in budget.terms if term.active) if contributions else 0)
     samples = _monte_carlo(evaluators, sets, budget, transform, draws, rng)
+    done = 1
+    if progress is not None:
+        progress(done, passes)
     per_term: dict[str, dict[tuple[str, str, str], np.ndarray]] = {}
     if contributions:
         extra = _count(contribution_draws, "contribution_draws", 50) if contribution_draws else max(200, draws // 4)
@@ -256,6 +263,9 @@ def iso_uncertainty(
                 continue
             per_term[term.name] = _monte_carlo(evaluators, sets, budget.only(term.name), transform, extra,
                                                np.random.default_rng([seed, index + 1]))
+            done += 1
+            if progress is not None:
+                progress(done, passes)
     truth = _truth_values(run, transform, evaluators, sets)
     intervals = _intervals(evaluators, measured, confidence)
     characteristics = dict(characteristics or {})

@@ -18,7 +18,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import special
 
 from instrument.uncertainty._budget import BudgetTerm, Correlation, Distribution, UncertaintyBudget
 from instrument.uncertainty._rotation import compose
@@ -79,6 +78,7 @@ def perturbed_tools(
     rng: np.random.Generator,
 ) -> dict[str, np.ndarray]:
     """(draws, n, 6) perturbed tool poses per set label."""
+    from scipy import special
     opr_delta = {s.label: np.zeros((draws, *s.opr.shape)) for s in sets}
     tool_delta = np.zeros((draws, 1, 6))
     values = np.array([s.value for s in sets])

@@ -3,20 +3,77 @@
 What it offers: ``main(argv)`` (the ``instrument`` script's entry point, ``procedures.cli:main``; also
 ``python -m procedures.cli``), ``build_parser()``, the error log's name (``ERROR_LOG``), and the pieces a
 run's terminal session is made of: ``drive`` (a run or resume from start to its last line), the live
-``Display``, the pause prompt (``ask_pause_key``), the signal handling (``signals_control``,
-``detach_at_once``), where ``--station sim`` cells live (``cell_directory``) and how ``instrument sim``
-lists a cell's endpoints (``endpoint_lines``).
+``Display``, the pause prompt (``ask_pause_key``, ``console_pause_handler``), the signal handling
+(``signals_control``, ``detach_at_once``), the command that continues a paused run (``resume_command``),
+where ``--station sim`` cells live (``cell_directory``) and how ``instrument sim`` lists a cell's endpoints
+(``endpoint_lines``).
 
 One module per command (``_run``, ``_resume``, ``_runs``, ``_show``, ``_history``, ``_report``,
 ``_export``, ``_validate``, ``_locate``, ``_sim``, ``_serve``), with what they share in ``_common`` and the
 progress display in ``_display``. It stands on the engine, the report and the store (and below); the
 ``serve`` command starts the web face (``procedures.serve``), which never imports this package.
+
+Every command module imports at its top only what its parser needs; the stacks a command stands on (the
+engine, the report, the measurement core, the display) load when it runs, so that ``--version``, ``--help``
+and the reading commands start at once (``tests/test_cli_startup.py``).
 """
 
-from procedures.cli._common import ask_pause_key, cell_directory, detach_at_once, drive, signals_control
-from procedures.cli._display import Display
-from procedures.cli._main import ERROR_LOG, build_parser, main
-from procedures.cli._sim import endpoint_lines
+from __future__ import annotations
 
-__all__ = ["ERROR_LOG", "Display", "ask_pause_key", "build_parser", "cell_directory", "detach_at_once", "drive",
-           "endpoint_lines", "main", "signals_control"]
+import importlib
+import signal
+import sys
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from procedures.cli._common import (
+        ask_pause_key,
+        cell_directory,
+        console_pause_handler,
+        detach_at_once,
+        drive,
+        resume_command,
+        signals_control,
+    )
+    from procedures.cli._display import Display
+    from procedures.cli._main import ERROR_LOG, build_parser
+    from procedures.cli._sim import endpoint_lines
+
+# Loaded on first use: ``instrument --version`` must not pay for the display (rich) or a run's stack, and the
+# ``instrument`` script's own import of ``main`` is over before a Ctrl-C could find Python's traceback.
+_LAZY = {**dict.fromkeys(("ask_pause_key", "cell_directory", "console_pause_handler", "detach_at_once", "drive",
+                          "resume_command", "signals_control"), "_common"),
+         "Display": "_display", "endpoint_lines": "_sim", "ERROR_LOG": "_main", "build_parser": "_main"}
+
+
+def main(argv: list[str] | None = None) -> int:
+    """The ``instrument`` command on ``argv`` (default: the process's arguments); returns its exit status.
+
+    Called without ``argv`` (the ``instrument`` script, ``python -m procedures.cli``) it owns the process: a
+    Ctrl-C while the command line loads is the one line ``interrupted`` (exit 130), and once the command has
+    ended Ctrl-C is ignored, so that the interpreter's shutdown (its atexit callbacks) is never cut short.
+    """
+    try:
+        try:
+            from procedures.cli._main import main as command
+
+            return command(argv)
+        except KeyboardInterrupt:
+            print("interrupted", file=sys.stderr)
+            return 130
+    finally:
+        if argv is None:
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f"{__name__}.{module}"), name)
+    globals()[name] = value
+    return value
+
+
+__all__ = ["ERROR_LOG", "Display", "ask_pause_key", "build_parser", "cell_directory", "console_pause_handler",
+           "detach_at_once", "drive", "endpoint_lines", "main", "resume_command", "signals_control"]

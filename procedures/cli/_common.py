@@ -24,16 +24,14 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
-from procedures.cli._display import Display
-from procedures.engine import PauseDecision
-from procedures.report import result_lines, result_summary
 from procedures.station import RunError
 from procedures.store import SQLITE_FILE, STORE_ENV, RunState, RunStore, store_location
 
-if TYPE_CHECKING:  # only for annotations: the engine's stack loads with the commands that run one
-    from procedures.engine import RunEngine
+if TYPE_CHECKING:  # only for annotations: the engine's, the report's and the display's stacks load on use
+    from procedures.cli._display import Display
+    from procedures.engine import PauseDecision, RunEngine
 
-__all__ = ["EXIT_CODES", "Display", "add_display", "add_runs_dir", "console_pause_handler", "detach_at_once",
+__all__ = ["EXIT_CODES", "add_display", "add_runs_dir", "console_pause_handler", "detach_at_once",
            "drive", "open_store", "signals_control", "station_for"]
 
 EXIT_CODES = {RunState.FINISHED: 0, RunState.FAILED: 1, RunState.ABORTED: 2, RunState.PAUSED: 3}
@@ -250,6 +248,9 @@ def station_for(station: str | None, runs_dir: Path, seed: int, calibration: lis
     cell = SimCell(seed=seed, directory=directory, session=session)
     try:
         cell.start()
+    except KeyboardInterrupt:  # Ctrl-C while the twins start: none is left behind
+        cell.stop()
+        raise
     except Exception as exc:  # the twins' own message, without their traceback
         cell.stop()
         raise RunError(f"the simulated cell did not start: {str(exc).strip().splitlines()[-1]}") from None
@@ -274,7 +275,8 @@ def drive(engine: RunEngine, args: argparse.Namespace, display: Display | None =
     """Execute with the display and the signal handling; print the outcome; return the exit code.
 
     At the end: the run's key results (``procedures.report._summaries``) and its report (written to
-    ``<runs>/<run>/report.html``) on stdout, or ``--quiet``'s one line, or ``--jsonl``'s ``done`` event.
+    ``<runs>/<run>/report.html``) on stdout, or ``--quiet``'s one line, or ``--jsonl``'s ``done`` event
+    (with ``resume``, the command that continues a paused run); a paused run's last line is that command.
     """
     started = time.monotonic()
     with signals_control(engine):
@@ -283,12 +285,33 @@ def drive(engine: RunEngine, args: argparse.Namespace, display: Display | None =
                 state = engine.execute()
         else:
             state = engine.execute()
+        # The run's end is stored: a Ctrl-C now would only cut its report and its last lines short.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        return _ended(engine, args, state, started)
+
+
+def resume_command(args: argparse.Namespace, run_id: str) -> str:
+    """The command that continues run ``run_id``, with the runs folder and store this command used."""
+    command = f"instrument resume {run_id}"
+    runs_dir = getattr(args, "runs_dir", None)
+    if runs_dir is not None and str(runs_dir) != os.environ.get("INSTRUMENT_RUNS", "runs"):
+        command += f" --runs-dir {runs_dir}"
+    if getattr(args, "store", None):
+        command += " --store URL"  # never the URL itself: it may carry a password
+    return command
+
+
+def _ended(engine: RunEngine, args: argparse.Namespace, state: RunState, started: float) -> int:
+    from procedures.report import result_lines, result_summary
+
     run = engine.store.get_run(engine.run_id)
     report, report_problem = write_report(engine.store, run)
     reason = (str(run["reason"]).splitlines() or [""])[0] if run["reason"] else None
     if args.jsonl:
         print(json.dumps({"event": "done", "run_id": engine.run_id, "state": state, "reason": run["reason"],
-                          "results": result_summary(run), "report": report}, default=str))
+                          "results": result_summary(run), "report": report,
+                          "resume": resume_command(args, engine.run_id) if state == RunState.PAUSED else None},
+                         default=str))
     elif args.quiet:
         print(f"{engine.run_id} {state}")  # scripts read these two words: nothing else, ever
     else:
@@ -300,6 +323,8 @@ def drive(engine: RunEngine, args: argparse.Namespace, display: Display | None =
             print(f"report: {report}")
         elif report_problem:
             print(f"report: not written ({report_problem})", file=sys.stderr)
+        if state == RunState.PAUSED:
+            print(f"left paused; continue with: {resume_command(args, engine.run_id)}")
     return EXIT_CODES.get(state, 1)
 
 

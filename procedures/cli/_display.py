@@ -31,6 +31,13 @@ from rich.text import Text
 HEARTBEAT_S = 10.0
 
 
+def analysis_text(event: dict[str, Any]) -> str:
+    """``analysing (uncertainty, 3 of 9)``; ``analysing the results`` before a stage has reported."""
+    if event.get("total"):
+        return f"analysing ({event.get('stage')}, {event.get('done')} of {event.get('total')})"
+    return "analysing the results"
+
+
 def clock(seconds: float | None) -> str:
     """``h:mm:ss`` (``--:--`` when unknown)."""
     if seconds is None:
@@ -98,6 +105,7 @@ class Display:
         self.phase = phase
         self.later_s = later_s
         self.last_progress: dict[str, Any] = {}
+        self.analysis: dict[str, Any] = {}  # the last "analysis" event, once the poses are done
         self.last_pose = ""
         self.started = time.monotonic()
         self._lock = threading.Lock()
@@ -176,6 +184,10 @@ class Display:
                 if self._progress is not None and self._task is not None:
                     self._progress.update(self._task, description=self._title(event), completed=event["done"],
                                           total=event["total"], eta=self._eta(event))
+            elif kind == "analysis":
+                self.analysis = event
+                if self._progress is not None and self._task is not None:
+                    self._progress.update(self._task, description=analysis_text(event), eta=event.get("eta_s"))
             elif kind == "state":
                 self._line(f"{time.strftime('%H:%M:%S')} {event['state']}"
                            + (f": {(str(event['reason']).splitlines() or [''])[0]}" if event.get("reason") else ""))
@@ -215,6 +227,10 @@ class Display:
         if not event:
             return f"{time.strftime('%H:%M:%S')} [{elapsed}] {self._title({})}: setting up"
         done, total = event["done"], event["total"]
+        if self.analysis:  # the poses are done: what runs now is the analysis, with its own ETA
+            eta = self.analysis.get("eta_s")
+            return (f"{time.strftime('%H:%M:%S')} [{elapsed}] {analysis_text(self.analysis)} · {done}/{total} poses "
+                    f"measured · ETA {clock(eta)}")
         eta = self._eta(event)
         waited = time.time() - float(event.get("time") or time.time())
         waiting = f" · waiting {waited:.0f} s since the last pose" if waited >= self.heartbeat_s else ""

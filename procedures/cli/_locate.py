@@ -9,12 +9,11 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import stat
 import sys
 from collections.abc import Iterator
-
-import numpy as np
 
 MAX_IMAGE_BYTES = 256 * 1024 * 1024
 MAX_IMAGE_PIXELS = 64 * 1024 * 1024  # 8k × 8k; the cameras give 1024×1040 and 2448×2048
@@ -54,6 +53,7 @@ def _native_stderr_quiet() -> Iterator[None]:
 def _read_image(name: str):
     """The image in file ``name`` (a numpy array), or the reason there is none (a string)."""
     import cv2
+    import numpy as np
 
     try:
         info = os.stat(name)
@@ -110,7 +110,7 @@ def run(args) -> int:
         else:
             print(
                 f"{name}: centre ({record['center_px'][0]:.4f}, {record['center_px'][1]:.4f}) px  "
-                f"angle {np.degrees(record['angle_rad']):.5f}°  "
+                f"angle {math.degrees(record['angle_rad']):.5f}°  "
                 f"sections {record['horizontal']['sections']}/{record['vertical']['sections']}  "
                 f"rms {record['horizontal']['residual_rms_px']:.4f}/{record['vertical']['residual_rms_px']:.4f} px  "
                 f"saturated {record['horizontal']['saturated_sections']}/{record['vertical']['saturated_sections']}"

@@ -6,7 +6,6 @@ import sys
 
 from procedures.cli._common import (
     RUN_EXIT_CODES,
-    Display,
     add_display,
     add_runs_dir,
     add_seed,
@@ -38,6 +37,7 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
+    from procedures.cli._display import Display
     from procedures.engine import open_engine
 
     with open_store(args) as store:

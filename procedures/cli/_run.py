@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
+import procedures
 from procedures.cli._common import (
     RUN_EXIT_CODES,
-    Display,
     add_display,
     add_runs_dir,
     add_seed,
@@ -17,11 +18,16 @@ from procedures.cli._common import (
     seconds_value,
     station_for,
 )
-from procedures.engine import PACKAGE_DIR
+
+
+def built_in_names() -> list[str]:
+    """The built-in procedures' names: the YAML files of the ``procedures`` folder, where the engine finds
+    them too (``procedures.engine.PACKAGE_DIR``), listed without loading the engine."""
+    return sorted(path.stem for path in Path(procedures.__file__).resolve().parent.glob("*.yaml"))
 
 
 def register(subparsers) -> None:
-    built_in = ", ".join(sorted(path.stem for path in PACKAGE_DIR.glob("*.yaml")))
+    built_in = ", ".join(built_in_names())
     parser = subparsers.add_parser(
         "run", help="run a procedure on a station",
         description="Dry-run the procedure on the station, then measure; every sample is committed to the run "
@@ -44,9 +50,28 @@ def register(subparsers) -> None:
     parser.set_defaults(handler=run)
 
 
+def check_procedure(name: str, overrides: list[str]) -> None:
+    """The procedure (a file or a built-in name) and its ``--set`` overrides, validated as ``open_engine`` will:
+    a ``ConfigError`` (one line per problem) before anything is started for the run."""
+    from procedures.engine import apply_overrides, load_procedure, resolve_procedure_path
+    from procedures.station import ConfigError, InputRefused, read_text_file
+
+    path = resolve_procedure_path(name)
+    try:
+        text = read_text_file(path, what="procedure file")
+    except InputRefused as exc:
+        raise ConfigError([str(exc)]) from None
+    if overrides:
+        apply_overrides(path, text, list(overrides))
+    else:
+        load_procedure(path, text)
+
+
 def run(args: argparse.Namespace) -> int:
+    from procedures.cli._display import Display
     from procedures.engine import open_engine
 
+    check_procedure(args.procedure, args.overrides)  # a typo or a bad --set must not start a simulated cell
     mode = "jsonl" if args.jsonl else "quiet" if args.quiet else "bar"
     display = Display(mode)
     with station_for(args.station, args.runs_dir, args.seed, args.calibration) as station:

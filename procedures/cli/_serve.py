@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import asyncio
 import os
 import sys
 from pathlib import Path
@@ -41,6 +40,8 @@ def _problem(message: str) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
+    import asyncio
+
     from procedures.serve import OpcUaSettings, ServeOptions, WebSettings, is_loopback, new_token, serve
 
     loopback = is_loopback(args.host)

@@ -28,8 +28,11 @@ def run(args) -> int:
     if args.json:
         print(json.dumps({**r, "samples": len(samples)}, indent=1, default=str))
         return 0
+    from procedures.report import report_title, show_lines  # the measurement stack loads only for a run's results
+
     ok = sum(s.ok for s in samples)
-    print(f"run        {r['id']}\nprocedure  {r['procedure']} ({r['procedure_name'] or ''})\n"
+    print(f"run        {r['id']}\ntitle      {report_title(r)}\n"
+          f"procedure  {r['procedure']} ({r['procedure_name'] or ''})\n"
           f"station    {r['station_name']} ({r['station_path']})\nstate      {r['state']}"
           + (f" — {r['reason']}" if r["reason"] else "")
           + f"\nsamples    {ok} ok, {len(samples) - ok} failed, {r['total_steps']} planned\n"
@@ -37,8 +40,6 @@ def run(args) -> int:
     if r.get("robot_serial"):
         print(f"robot      {r.get('robot_manufacturer') or ''} {r.get('robot_model') or ''} serial {r['robot_serial']}"
               f" (controller {r.get('robot_controller_version') or '?'})")
-    from procedures.report import show_lines  # the measurement stack loads only for a run's results
-
     for line in show_lines(r):
         print(line)
     print("recent events:")

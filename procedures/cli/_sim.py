@@ -9,8 +9,6 @@ import threading
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from procedures.cli._common import seconds_value, seed_value
 from procedures.station import InputRefused, read_text_file
 
@@ -34,6 +32,8 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
+    import yaml
+
     from sim_devices.cell import CellHost
 
     config: dict[str, Any] = {}

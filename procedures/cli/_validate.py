@@ -9,9 +9,9 @@ repeats over many steps is printed once with the count of the others.
 
 from __future__ import annotations
 
+import os
 import sys
-
-import numpy as np
+from pathlib import Path
 
 from procedures.station import ConfigError
 
@@ -31,21 +31,22 @@ def register(subparsers) -> None:
 
 
 def run(args) -> int:
-    from procedures.engine import detect_kind, load_procedure, load_station  # loads the measurement stack
+    from procedures.engine import detect_kind, load_procedure, load_station
 
     status = 0
     stations, procedures = [], []
     for name in args.files:
         try:
-            if detect_kind(name) == "station":
-                station = load_station(name)
+            path = _resolved(name)
+            if detect_kind(path) == "station":
+                station = load_station(path)
                 stations.append((name, station))
                 record_problems = _record_problems(station)
                 if record_problems:
                     raise ConfigError([f"{name}: {problem}" for problem in record_problems])
                 what = "station"
             else:
-                procedure = load_procedure(name)
+                procedure = load_procedure(path)
                 procedures.append((name, procedure))
                 what = procedure.procedure
         except ConfigError as exc:
@@ -69,6 +70,22 @@ def run(args) -> int:
     return status
 
 
+def _resolved(name: str) -> str:
+    """A file as named, or the built-in procedure of that name (``instrument run`` resolves it alike). A bare
+    name that is neither is refused as ``run`` refuses it (with the nearest built-in); a path stays as given,
+    for the reader to say why it cannot be read."""
+    from procedures.engine import resolve_procedure_path
+
+    if Path(name).exists():
+        return name
+    try:
+        return str(resolve_procedure_path(name))
+    except ConfigError:
+        if Path(name).suffix or "/" in name or os.sep in name:
+            return name
+        raise
+
+
 def _record_problems(station) -> list[str]:
     from procedures.engine import collapse, record_paths, record_problems
     from procedures.station import InstrumentScience
@@ -77,6 +94,8 @@ def _record_problems(station) -> list[str]:
 
 
 def _dry_run(station, procedure) -> tuple[list[str], int]:
+    import numpy as np
+
     from drivers.robot import MotionEnvelope
     from procedures.engine import collapse, offline_problems
     from procedures.kinds import kind_of

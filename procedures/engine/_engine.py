@@ -235,8 +235,9 @@ class RunEngine:
             self._set_state(RunState.RUNNING, hook="run_resumed" if resuming else "run_started", reason=reason)
             if not resuming:
                 self.dry_run(measured)
-            if "robot" in self.kind.devices(self.params):
-                self._record_robot_identity(run)
+            # Every kind records the cell's robot: a run that does not move it (the angle calibration) still
+            # belongs to that robot's cell, and the faces group runs by it (a robot listed once, not twice).
+            self._record_robot_identity(run, required="robot" in self.kind.devices(self.params))
             for step in self.plan:
                 if step.index in measured:
                     continue
@@ -303,10 +304,20 @@ class RunEngine:
         return dict(self.store.streams(self.run_id, steps))
 
     def _analyse(self) -> None:
+        started = time.monotonic()
+
+        def progress(stage: str, done: int, total: int) -> None:
+            """The analysis' own progress and ETA (at the pace of its passes so far) for the faces."""
+            elapsed = time.monotonic() - started
+            eta = elapsed / done * (total - done) if done > 0 else None
+            self._emit("analysis", stage=stage, done=done, total=total, eta_s=eta)
+
+        self._emit("analysis", stage="results", done=0, total=None, eta_s=None)
         context = AnalysisContext(run_id=self.run_id, station=self.station.model, science=self.science,
                                   compensators=self.compensators, run_dir=self.store.run_dir(self.run_id),
                                   truth=_truth_log(self.station.model),
-                                  streams=self._streams, sessions=self.store.sessions(self.run_id))
+                                  streams=self._streams, sessions=self.store.sessions(self.run_id),
+                                  progress=progress)
         analysis = self.kind.analyse(self.store.samples(self.run_id), self.params, context)
         if analysis.calibration_record_id is not None:
             self.store.update_run(self.run_id, calibration_record_id=analysis.calibration_record_id)
@@ -401,9 +412,18 @@ class RunEngine:
         self._emit_progress(step)
         return pose
 
-    def _record_robot_identity(self, run: dict[str, Any]) -> None:
-        """Store who the robot is, as its controller says (a run measured on another robot is refused)."""
-        identify = getattr(self.station.robot, "identity", None)
+    def _record_robot_identity(self, run: dict[str, Any], *, required: bool = True) -> None:
+        """Store who the robot is, as its controller says (a run measured on another robot is refused).
+
+        ``required`` False (a kind that does not use the robot): a robot that cannot be reached or tells no
+        identity is logged, and a different robot than the stored one is logged and left as stored."""
+        try:
+            identify = getattr(self.station.robot, "identity", None)
+        except DeviceError as exc:
+            if required:
+                raise
+            self._log("robot_identity", f"the cell's robot was not reached, the run records no robot: {exc}")
+            return
         if identify is None:
             self._log("robot_identity", "the robot adapter cannot tell its identity")
             return
@@ -413,6 +433,10 @@ class RunEngine:
             self._log("robot_identity", f"the controller did not give its identity: {exc}")
             return
         stored = run.get("robot_serial")
+        if stored and stored != identity.serial_number and not required:
+            self._log("robot_identity", f"the cell's robot now reports serial {identity.serial_number}; the run "
+                                        f"keeps {stored}")
+            return
         if stored and stored != identity.serial_number:
             raise RunError(f"this run was measured on the robot with serial {stored}; the controller now reports "
                            f"serial {identity.serial_number}: resume it on that robot")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import json
 from pathlib import Path
 from types import UnionType
@@ -11,7 +12,6 @@ from typing import Annotated, Any, Union, get_args, get_origin
 from pydantic import BaseModel, ValidationError
 from pydantic_core import ErrorDetails
 
-from instrument.pose import Geometry
 from procedures.kinds import KINDS, ProcedureBase
 from procedures.station import ConfigError, MarkedYaml, StationFile, load_marked
 
@@ -169,6 +169,7 @@ def load_station(path: str | Path, *, check_geometry: bool = True) -> StationFil
 
 def _check_geometry(geometry: dict) -> str | None:
     """Let ``instrument.pose.Geometry.from_dict`` judge the geometry."""
+    from instrument.pose import Geometry
     try:
         Geometry.from_dict(geometry)
     except (TypeError, ValueError, KeyError) as exc:
@@ -186,8 +187,11 @@ def resolve_procedure_path(name_or_path: str | Path) -> Path:
             return candidate
     if path.exists():  # a folder, FIFO or device: the reader says why it is no procedure file
         return path
+    built_ins = sorted(candidate.stem for candidate in PACKAGE_DIR.glob("*.yaml"))
+    close = difflib.get_close_matches(path.stem, built_ins, n=1)
+    hint = f"did you mean {close[0]}? " if close else ""
     raise ConfigError([f"{name_or_path}: no such procedure file (and no built-in procedure of that name; "
-                       f"built-ins: {', '.join(sorted(KINDS))})"])
+                       f"{hint}built-ins: {', '.join(built_ins)})"])
 
 
 def load_procedure(path: str | Path, text: str | None = None, *, stored: bool = False) -> ProcedureBase:

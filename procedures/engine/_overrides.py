@@ -41,6 +41,10 @@ def parse_set(items: list[str]) -> dict[str, tuple[str, Any]]:
             except yaml.YAMLError as exc:
                 problems.append(f"--set {item}: cannot read the value: {(str(exc).splitlines() or [''])[0]}")
                 continue
+            except ValueError:  # Python refuses to read an integer of more than 4300 digits
+                problems.append(f"--set {key}={text[:20]}...: cannot read the value: a number of {len(text)} "
+                                "characters")
+                continue
             if isinstance(value, dict):
                 problems.append(f"--set {item}: expected a number, a word, true/false or a [list]")
                 continue

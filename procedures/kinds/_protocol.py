@@ -18,15 +18,18 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
 from pathlib import Path
-from typing import Any, Literal, Protocol, TypeVar
+from typing import TYPE_CHECKING, Any, Literal, Protocol, TypeVar
 
 from drivers.interferometer import Interferometer
 from drivers.robot import Robot
 from drivers.rotary_table import RotaryTable
 from procedures.kinds._parameters import MotionParameters, ProcedureBase
 from procedures.kinds._setups import Setup
-from procedures.station import Compensator, Science, StationFile, TruthLog
+from procedures.station import StationFile
 from procedures.store import CorrectedPose, Pose, Reference, Sample, SessionConditions, SolvedPose
+
+if TYPE_CHECKING:  # the measurement core loads with the engine that measures, not with the kinds' models
+    from procedures.station import Compensator, Science, TruthLog
 
 S = TypeVar("S")
 DeviceRole = Literal["robot", "rotary_table", "interferometer"]  # the cameras serve every kind
@@ -216,6 +219,8 @@ class AnalysisContext:
     """The run's stored pose streams by step (``RunStore.streams``), of the given steps or all."""
     sessions: Sequence[SessionConditions] = ()
     """The test conditions of each session of the run, oldest first (``RunStore.sessions``)."""
+    progress: Callable[[str, int, int], None] | None = None
+    """``progress(stage, k, n)``: how far a long analysis is (``"uncertainty", 3, 9``), for the faces' progress."""
 
 
 @dataclass(frozen=True)

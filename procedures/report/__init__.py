@@ -3,7 +3,9 @@
 What it offers:
 
 - ``render_report`` (one self-contained HTML document per run), ``render_pdf`` and ``PdfUnavailable``,
-  ``robot_label``; ``export_csv`` and ``export_json``;
+  ``robot_label``; ``report_title``, a run's title as its kind words it from the parameters in force (the
+  report, ``instrument show``, the web view and OPC UA title a run by it, never by the procedure file's name);
+  ``export_csv`` and ``export_json``;
 - the registry of results sections, one per shape of results a kind declares (``SECTIONS``,
   ``ResultSection``, ``register_section``, ``unregister_section``) and the lookups through it:
   ``show_lines`` (``instrument show``), ``result_lines`` and ``result_summary`` (the end of ``run`` and
@@ -19,7 +21,7 @@ kinds' results through their declared shape (``procedures.kinds``) and the store
 imports the engine or the faces.
 """
 
-from procedures.report._conditions import quantity
+from procedures.report._conditions import quantity, report_title
 from procedures.report._document import render_report, robot_label
 from procedures.report._export import export_csv, export_json
 from procedures.report._format import MICROMETRES, Figure, figure_cell
@@ -52,6 +54,6 @@ __all__ = [
     "MICROMETRES", "SECTIONS", "Circle", "Figure", "PdfUnavailable", "ResultSection", "calibration_lines",
     "changes", "export_csv", "export_json", "figure", "figure_cell", "figure_columns", "held_out_rows",
     "history_figures", "history_procedures", "iso_points", "iso_rows", "lines", "point_figure", "quantity",
-    "register_section", "render_pdf", "render_report", "result_lines", "result_summary", "robot_label", "scatter",
-    "show_lines", "shown", "unregister_section",
+    "register_section", "render_pdf", "render_report", "report_title", "result_lines", "result_summary",
+    "robot_label", "scatter", "show_lines", "shown", "unregister_section",
 ]

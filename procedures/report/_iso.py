@@ -89,8 +89,8 @@ def _head(keys: Sequence[str]) -> str:
     return "".join(f"<th>{figure_name(key)} ({figure_unit(key).symbol})</th>" for key in keys)
 
 
-def _point_table(results: Mapping[str, Any], keys: Sequence[str], caption: str) -> str:
-    """Per point a measured row and, in simulation, a true row; the worst case last."""
+def _point_table(results: Mapping[str, Any], keys: Sequence[str], caption: str, *, with_truth: bool = True) -> str:
+    """Per point a measured row and, in simulation and where ``with_truth``, a true row; the worst case last."""
     points = results.get("points") or {}
     rows = []
     for label in results.get("order") or []:
@@ -102,7 +102,7 @@ def _point_table(results: Mapping[str, Any], keys: Sequence[str], caption: str) 
         cells = "".join(figure_cell(figure(results, label, key), figure_unit(key)) for key in keys)
         rows.append(f"<tr data-point='{escape(label)}'><td class=l>{escape(label)}</td><td>{entry.get('n', '')}</td>"
                     f"{cells}</tr>")
-        truth = [true_figure(results, label, key) for key in keys]
+        truth = [true_figure(results, label, key) for key in keys] if with_truth else []
         if any(t.value is not None for t in truth):
             cells = "".join(figure_cell(t, figure_unit(key), css="true") for t, key in zip(truth, keys))
             rows.append(f"<tr class=true><td class='l true'>{escape(label)} (true)</td><td></td>{cells}</tr>")
@@ -263,14 +263,12 @@ def _legend_html(results: Mapping[str, Any]) -> str:
     values = (" Values are the ISO formula's corrected for the instrument's noise bias (see the budget); the "
               "formula's own values are in the appendix." if _with_u(results) else "")
     points = results.get("points") or {}
-    if "figures" in results:
-        truth = ("Rows marked (true) are the same figures of the poses the simulated cell really attained, through "
-                 "the transform fitted on the true positions of the transform step: like with like, so measured − "
-                 "true is the instrument's error.")
-    else:
-        truth = ("Rows marked (true) are the same figures of the poses the simulated cell really attained. Their RP "
-                 "compares like for like with the measured rows; their AP does not (the true tool point there carries "
-                 "the OPR and tool mounting errors the cell hides from the instrument).")
+    truth = ("Rows marked (true), in the repeatability table only, are the same RP figures of the poses the "
+             "simulated cell really attained: RP is a spread about each point's own mean, so it compares like for "
+             "like and measured − true is the instrument's error. Pose accuracy has no true row: the measured AP is "
+             "against the commanded poses after the transform step, while the cell's true tool point carries the "
+             "OPR and tool mounting errors the cell hides from the instrument, so a true AP would not compare with "
+             "it (the two differ by those mounting errors, not by the instrument's error).")
     has_truth = any("true_stats" in (points.get(p) or {}) for p in results.get("order") or []) or any(
         figure(results, p, "rp_l").true is not None for p in measured_labels(results))
     return f"<p class=note>{cells}{values}</p>" + (f"<p class=note>{truth}</p>" if has_truth else "")
@@ -291,7 +289,8 @@ def iso_results_html(results: Mapping[str, Any]) -> str:
         + _context_html(results)
         + _point_table(results, RP_FIGURES, "Pose repeatability RP (RP<sub>l</sub> = l̄ + 3·S<sub>l</sub>; "
                        "RP<sub>a,b,c</sub> = ±3·S)")
-        + _point_table(results, AP_FIGURES, "Pose accuracy AP against the commanded pose (after the transform step)")
+        + _point_table(results, AP_FIGURES, "Pose accuracy AP against the commanded pose (after the transform step)",
+                       with_truth=False)
         + _legend_html(results) + extra + _budget_html(results) + "</section>"
         + ("<section class=part id=plots><h2>Attained positions</h2><p class=note>Positions about each point's "
            "barycentre, equal scales on both axes; the dashed circle has the radius RP<sub>l</sub>.</p>"

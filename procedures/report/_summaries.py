@@ -123,6 +123,9 @@ def iso_table_lines(results: Mapping[str, Any]) -> list[str]:
         lines.append("± : expanded uncertainty U (k = 2)")
     elif "ci" in sources:
         lines.append("± : half-width of the 95 % confidence interval (sampling only; no uncertainty in these results)")
+    if results.get("compensation") == []:  # measured without a calibration record in force
+        lines.append("uncompensated: no calibration record was in force, so these figures carry the instrument's own "
+                     "systematic errors (run the calibrations, then measure with their records in force)")
     return lines
 
 

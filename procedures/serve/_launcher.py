@@ -1,9 +1,10 @@
 """Runs started for a cell controller: each one an ``instrument run … --jsonl`` child process.
 
-The engine is not changed for this: the launcher drives the CLI as an operator would. Start spawns
-``instrument run PROCEDURE --station STATION --jsonl --pause-timeout 0`` (the run folder shared with
-the server); Pause sends the child SIGINT (one Ctrl-C: the engine pauses at the next safe point, and
-without a terminal a paused run is left PAUSED in the store and the process exits 3); Resume spawns
+The engine is not changed for this: the launcher drives the CLI as an operator would. Start checks the
+procedure with its overrides as ``instrument run`` will and spawns ``instrument run PROCEDURE --station
+STATION --set KEY=VALUE ... --jsonl --pause-timeout 0`` (the run folder shared with the server; no file is
+written for a run, refused or not); Pause sends the child SIGINT (one Ctrl-C: the engine pauses at the
+next safe point, and without a terminal a paused run is left PAUSED in the store and the process exits 3); Resume spawns
 ``instrument resume RUN --jsonl``; Abort sends SIGTERM (an abort: devices stopped, ABORTED stored), and
 if the process ended without storing an outcome, or the run was paused with no process, the launcher
 stores ABORTED itself. Every child runs in its own session (a Ctrl-C at the server's terminal does not
@@ -24,8 +25,8 @@ from typing import Any
 
 import yaml
 
-from procedures.engine import load_procedure, resolve_procedure_path
-from procedures.station import ConfigError, RunLocked, StateConflict
+from procedures.engine import apply_overrides, load_procedure, resolve_procedure_path
+from procedures.station import ConfigError, InputRefused, RunLocked, StateConflict, read_text_file
 from procedures.store import RunState, RunStore
 
 
@@ -53,25 +54,31 @@ def parse_overrides(text: str) -> dict[str, Any]:
     return overrides
 
 
-def procedure_with_overrides(procedure: str, overrides: dict[str, Any], folder: Path) -> Path:
-    """The procedure file to run: ``procedure`` itself, or a validated copy in ``folder`` with
-    ``overrides`` applied to its ``parameters``. Raises ``LaunchRefused`` with the validation problems."""
+def override_items(text: str) -> list[str]:
+    """``"cycles=5; settle_time_s=0.05"`` → ``["cycles=5", "settle_time_s=0.05"]``: the ``--set`` values of the run
+    (separated as in ``parse_overrides``). Raises ``LaunchRefused`` for a part that is no ``key=value``."""
+    parse_overrides(text)  # the same refusals, in the same words
+    items = []
+    for part in text.replace("\n", ";").split(";"):
+        key, sep, value = part.partition("=")
+        if sep:
+            items.append(f"{key.strip()}={value.strip()}")
+    return items
+
+
+def checked_procedure(procedure: str, items: list[str]) -> Path:
+    """The procedure file to run, checked with its ``--set`` ``items`` exactly as ``instrument run`` will
+    (``procedures.engine.apply_overrides``); nothing is written. Raises ``LaunchRefused`` with the problems."""
     try:
         path = resolve_procedure_path(procedure)
-        text = path.read_text(encoding="utf-8")
-    except (ConfigError, OSError, UnicodeDecodeError) as exc:
+        text = read_text_file(path, what="procedure file")
+    except (ConfigError, InputRefused) as exc:
         raise LaunchRefused(str(exc).splitlines()[0] if str(exc) else f"no procedure {procedure!r}") from None
-    if overrides:
-        data = yaml.safe_load(text)
-        if not isinstance(data, dict):
-            raise LaunchRefused(f"{path}: not a procedure file")
-        data["parameters"] = {**(data.get("parameters") or {}), **overrides}
-        folder.mkdir(parents=True, exist_ok=True)
-        path = folder / f"{time.strftime('%Y%m%d-%H%M%S')}-{path.stem}.yaml"
-        text = yaml.safe_dump(data, sort_keys=False)
-        path.write_text(text, encoding="utf-8")
     try:
-        load_procedure(path, text)
+        if items:
+            apply_overrides(path, text, items)
+        else:
+            load_procedure(path, text)
     except ConfigError as exc:
         raise LaunchRefused("; ".join(str(exc).splitlines())) from None
     return path
@@ -131,8 +138,10 @@ class RunLauncher:
             raise LaunchRefused("a run started here is still going; pause, abort or wait for it first")
         if station != "sim" and not Path(station).is_file():
             raise LaunchRefused(f"no station file {station!r} (give a station YAML or 'sim')")
-        path = procedure_with_overrides(procedure, parse_overrides(overrides), self.runs_dir / "serve")
-        command = ["run", str(path), "--station", station]
+        items = override_items(overrides)
+        path = checked_procedure(procedure, items)
+        # The overrides go to the run as --set (stored with it, as from a terminal); no copy of the file is made.
+        command = ["run", str(path), "--station", station, *[f"--set={item}" for item in items]]
         return await self._spawn(command, station)
 
     async def resume(self, run_id: str) -> Launch:

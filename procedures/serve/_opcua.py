@@ -48,6 +48,7 @@ VARIABLES: tuple[tuple[str, ua.VariantType, Any, str], ...] = (
     ("State", V.String, "IDLE", "IDLE, STARTING, QUEUED, RUNNING, PAUSING, PAUSED, FINISHED, FAILED or ABORTED"),
     ("RunId", V.String, "", "the current run (the one started here, else the newest active or newest run)"),
     ("Procedure", V.String, "", "its procedure kind"),
+    ("Title", V.String, "", "its title, from the parameters in force (a run with --set cycles=3: '... 3 cycles')"),
     ("Station", V.String, "", "its station name"),
     ("Reason", V.String, "", "why it paused, failed or was aborted"),
     ("LastMessage", V.String, "", "the outcome of the last method call, one line"),
@@ -84,10 +85,13 @@ def _argument(name: str, description: str) -> ua.Argument:
 
 
 def opc_name(stat: str) -> str:
-    """``rp_l`` → ``RP_l``, ``rp_l_ci`` → ``RP_l_CI``, ``rp_l_u`` → ``RP_l_U``, ``n`` → ``N`` (the ISO 9283 symbols)."""
+    """``rp_l`` → ``RP_l``, ``rp_l_ci`` → ``RP_l_CI``, ``rp_l_u`` → ``RP_l_U``, ``ap_p`` → ``AP_P``, ``n`` → ``N``
+    (the ISO 9283 symbols: positional accuracy is AP_P, its components AP_x … AP_c)."""
     parts = stat.split("_")
     if parts[0] in ("rp", "ap", "s"):
         parts[0] = parts[0].upper()
+    if parts[:2] == ["AP", "p"]:
+        parts[1] = "P"
     if parts[-1] in ("ci", "u"):
         parts[-1] = parts[-1].upper()
     return "_".join(parts) if len(parts) > 1 else stat.upper()
@@ -228,6 +232,7 @@ class InstrumentOpcUa:
         await self._set("State", state)
         await self._set("RunId", run["id"] if run else "")
         await self._set("Procedure", run["procedure"] if run else "")
+        await self._set("Title", run["title"] if run else "")
         await self._set("Station", (run["station"] or "") if run else "")
         await self._set("Reason", (run["reason"] or "") if run else "")
         done, total = (run["done"] or 0, run["total"] or 0) if run else (0, 0)

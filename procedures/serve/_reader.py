@@ -19,6 +19,7 @@ from typing import Any, TypeVar
 
 import numpy as np
 
+from procedures.report import report_title
 from procedures.store import RunState, RunStore, Sample
 
 T = TypeVar("T")
@@ -47,6 +48,9 @@ def run_summary(run: dict[str, Any]) -> dict[str, Any]:
         "id": run["id"],
         "procedure": run["procedure"],
         "name": run.get("procedure_name"),
+        # As the run's kind words it from the parameters in force (``--set cycles=3``: "3 cycles"), never the
+        # procedure file's name; the results' own count once the run has them.
+        "title": report_title(run),
         "station": run.get("station_name"),
         "state": str(RunState(run["state"]).value),
         "reason": run.get("reason"),
@@ -126,7 +130,8 @@ class StoreReader:
         def compute() -> list[dict[str, Any]]:
             with self._lock:
                 rows = self._store.list_runs()
-            return [run_summary(row) for row in reversed(rows)]
+                parameters = self._store.parameters_of()
+            return [run_summary({**row, "parameters": parameters.get(row["id"], {})}) for row in reversed(rows)]
         return self._cached("runs", "", compute)
 
     def run(self, run_id: str) -> dict[str, Any]:

@@ -32,7 +32,7 @@ def runs(reader: Reader, q: str = Query("", description="text searched in id, pr
             if (not state or r["state"] == state.upper()) and (not procedure or r["procedure"] == procedure)
             and (not robot or r["robot"]["key"] == robot)
             and (not needle or needle in " ".join(str(r.get(k) or "") for k in
-                                                  ("id", "procedure", "name", "station", "reason")).lower())]
+                                                  ("id", "procedure", "name", "title", "station", "reason")).lower())]
     return {"runs": rows[:limit], "matched": len(rows), "current": reader.current_run_id()}
 
 

@@ -7,10 +7,12 @@ Poses in M are ``(6,)`` ``[x, y, z, alpha, theta, gamma]`` with R = Rz(gamma)·R
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+
+ANGLE_COMPONENT = {"x": "a", "y": "b", "z": "c"}  # the pose component of a rotation about M's axis k
 
 
 def ur_to_matrix(pose) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
     pose = np.asarray(pose, dtype=float)
     out = np.eye(4)
     out[:3, :3] = Rotation.from_rotvec(pose[3:]).as_matrix()
@@ -19,10 +21,12 @@ def ur_to_matrix(pose) -> np.ndarray:
 
 
 def matrix_to_ur(matrix: np.ndarray) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
     return np.concatenate([matrix[:3, 3], Rotation.from_matrix(matrix[:3, :3]).as_rotvec()])
 
 
 def euler_to_matrix(pose) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
     pose = np.asarray(pose, dtype=float)
     out = np.eye(4)
     out[:3, :3] = Rotation.from_euler("xyz", pose[3:]).as_matrix()
@@ -31,6 +35,7 @@ def euler_to_matrix(pose) -> np.ndarray:
 
 
 def matrix_to_euler(matrix: np.ndarray) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
     return np.concatenate([matrix[:3, 3], Rotation.from_matrix(matrix[:3, :3]).as_euler("xyz")])
 
 

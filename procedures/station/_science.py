@@ -32,8 +32,6 @@ from instrument.vision import CrossMeasurement, CrossNotFound, locate_cross
 from procedures.station._files import read_text_file
 from procedures.station._models import StationFile
 
-ANGLE_COMPONENT = {"x": "a", "y": "b", "z": "c"}  # rotation about M's axis k
-
 
 class MeasurementFailed(ValueError):
     """A frame triple gave no pose (no cross, a partial cross, a solver that did not converge)."""

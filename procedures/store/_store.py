@@ -25,14 +25,13 @@ from __future__ import annotations
 import json
 import os
 import socket
+import sys
 import time
 import uuid
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
-
-import numpy as np
 
 from procedures.station import RunLocked, StateConflict
 from procedures.store._db import SQLITE_FILE, Database, DuplicateStep, StoreError, connect, store_location
@@ -90,9 +89,10 @@ def _dumps(value: Any) -> str | None:
 
 
 def _default(value: Any) -> Any:
-    if isinstance(value, np.ndarray):
+    np = sys.modules.get("numpy")  # a numpy value means numpy is loaded: reading the store never loads it
+    if np is not None and isinstance(value, np.ndarray):
         return value.tolist()
-    if isinstance(value, (np.floating, np.integer, np.bool_)):
+    if np is not None and isinstance(value, (np.floating, np.integer, np.bool_)):
         return value.item()
     if isinstance(value, Path):
         return str(value)
@@ -366,6 +366,10 @@ class RunStore:
         """Every run on the robot with serial number ``serial`` (whole rows, results decoded), oldest first."""
         return [self.get_run(row["id"]) for row in self.list_runs(states=states, procedure=procedure,
                                                                   procedures=procedures, robot=serial)]
+
+    def parameters_of(self) -> dict[str, dict[str, Any]]:
+        """Every run's parameters in force (``--set`` included), by run id: what a list of runs titles them by."""
+        return {row["id"]: json.loads(row["parameters"]) for row in self._db.rows("SELECT id, parameters FROM runs")}
 
     def robots(self) -> list[dict[str, Any]]:
         """The robots the store has runs of: serial, manufacturer, model, number of runs, first and last run time."""

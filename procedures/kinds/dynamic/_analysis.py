@@ -25,7 +25,6 @@ from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from instrument.iso9283 import (
     ISO9283Error,
@@ -50,6 +49,7 @@ DEFAULT_BAND_M = 10e-6
 
 def tool_poses(opr: np.ndarray, opr_to_tool: np.ndarray) -> np.ndarray:
     """(N, 6) tool-point poses in M from (N, 6) OPR poses, with the 4×4 OPR → tool transform."""
+    from scipy.spatial.transform import Rotation
     opr = np.asarray(opr, dtype=float).reshape(-1, 6)
     if not len(opr):
         return opr.copy()

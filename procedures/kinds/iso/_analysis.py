@@ -10,8 +10,8 @@ transform fitted on the true positions of the transform pass (see docs/results.m
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
-from typing import Any
+from collections.abc import Callable, Mapping, Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -23,8 +23,11 @@ from procedures.kinds._protocol import RESULTS_VERSION, AnalysisContext
 from procedures.kinds.iso._budget import BudgetUnavailable, iso_budget, squareness_terms
 from procedures.kinds.iso._parameters import IsoParameters
 from procedures.kinds.iso._test_conditions import deviations_of, test_conditions
-from procedures.station import Compensator, euler_to_matrix, matrix_to_euler, tcp_in_m, ur_to_matrix
+from procedures.station import euler_to_matrix, matrix_to_euler, tcp_in_m, ur_to_matrix
 from procedures.store import Sample
+
+if TYPE_CHECKING:
+    from procedures.station import Compensator
 
 DISTANCE_PAIR = ("P2", "P4")  # ISO 9283 §7.? distance accuracy and repeatability: P2 → P4 (the cube's diagonal)
 LINEAR_FIGURES = {"rp_l", "ap_p", "ap_x", "ap_y", "ap_z"}
@@ -162,7 +165,7 @@ def analyse_iso(samples: Sequence[Sample], ctx: AnalysisContext, params: IsoPara
                 run_air_k=run_air, positions={label: bary[:3].tolist() for label, bary in opr_barycentres.items()},
                 squareness=(params.frame_squareness_urad or 0.0) * 1e-6)
             uncertainty, figures = _evaluate(params, budget, estimator, measured_tools, commanded_tools, true_tools,
-                                             ctx.station.frames.tool_in_opr)
+                                             ctx.station.frames.tool_in_opr, ctx.progress)
             uncertainty["off_axis"] = off_axis
             uncertainty["frame_squareness_rad"] = None if params.frame_squareness_urad is None \
                 else params.frame_squareness_urad * 1e-6
@@ -213,7 +216,8 @@ def _station_record_infos(ctx: AnalysisContext, notes: list[str]) -> list[dict[s
 
 def _evaluate(params: IsoParameters, budget: Any, estimator: Mapping[str, Any], measured: Mapping[str, np.ndarray],
               commanded: Mapping[str, np.ndarray], truth: Mapping[str, np.ndarray],
-              tool_in_opr: Sequence[float]) -> tuple[dict[str, Any], dict[str, Any]]:
+              tool_in_opr: Sequence[float], progress: Callable[[str, int, int], None] | None = None
+              ) -> tuple[dict[str, Any], dict[str, Any]]:
     n = min(len(p) for p in measured.values())
     pairs = [DISTANCE_PAIR] if all(p in measured for p in DISTANCE_PAIR) else []
     drift = params.drift_cycles if params.drift_cycles is not None else max(2, n // 3)
@@ -221,7 +225,8 @@ def _evaluate(params: IsoParameters, budget: Any, estimator: Mapping[str, Any], 
     run = IsoRun(measured=dict(measured), commanded=dict(commanded), tool_in_opr=ur_to_matrix(tool_in_opr),
                  truth=dict(truth) if truth and set(truth) == set(measured) else None)
     result = iso_uncertainty(run, budget, draws=params.uncertainty_draws, seed=SEED, distance_pairs=pairs,
-                             drift_cycles=drift_cycles)
+                             drift_cycles=drift_cycles,
+                             progress=None if progress is None else lambda k, n: progress("uncertainty", k, n))
     exported = result.to_dict()
     uncertainty = {
         "evaluated": True, "reason": None, "method": exported["method"], "coverage_factor": exported["coverage_factor"],

@@ -135,13 +135,21 @@ def deviations_of(params: IsoParameters, conditions: Mapping[str, Any], points: 
                                   "and AD leaves it out"))
         failing = uncertainty.get("above_25_percent") or []
         if failing:
-            names = sorted({f[2] for f in failing})
-            out.append(_deviation("uncertainty_above_25_percent", "warning", f"{len(failing)} figures have U above "
-                                  f"25 % of their value ({', '.join(names)})", figures=failing))
+            counts: dict[str, int] = {}
+            for figure in failing:
+                counts[figure[2]] = counts.get(figure[2], 0) + 1
+            where = ", ".join(f"{name} ×{count}" if count > 1 else name for name, count in sorted(counts.items()))
+            out.append(_deviation("uncertainty_above_25_percent", "warning", f"{len(failing)} figure values (of "
+                                  f"{len(counts)} figures, over the points and pairs) have U above 25 % of their "
+                                  f"value: {where}", figures=failing))
     else:
         out.append(_deviation("uncertainty_not_evaluated", "warning", "measurement uncertainty not evaluated: "
                               f"{uncertainty.get('reason')}"))
     out += _rated(conditions)
+    warm = conditions.get("warm_up") or {}
+    if not (warm.get("ran_s") or warm.get("duration_s")):
+        out.append(_deviation("no_warm_up", "deviation", "no warm-up before the test (ISO 9283 tests a robot at its "
+                              "operating temperature): set warm_up_s (declared) or warm_up: run"))
     if conditions.get("environment") is None:
         out.append(_deviation("environment_not_recorded", "deviation", "no environmental reading: the air "
                               "temperature and its drift during the test are not recorded"))

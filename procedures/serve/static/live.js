@@ -17,7 +17,7 @@ function reset(runId) {
 }
 
 function showRun(run) {
-  $("title").textContent = `${run.name || run.procedure} · ${run.id.slice(0, 12)} · ${run.station || ""}`;
+  $("title").textContent = `${run.title || run.name || run.procedure} · ${run.id.slice(0, 12)} · ${run.station || ""}`;
   $("state").replaceChildren(stateBadge(run.state));
   $("done").textContent = run.done ?? 0;
   $("total").textContent = run.total ?? 0;

@@ -10,7 +10,7 @@ async function refresh() {
     el("td", {}, el("a", { href: `/runs/${r.id}` }, r.id.slice(0, 12))),
     el("td", {}, stateBadge(r.state)),
     el("td", { class: "num" }, `${r.done ?? 0}/${r.total ?? 0}`),
-    el("td", {}, r.name || r.procedure),
+    el("td", {}, r.title || r.name || r.procedure),
     el("td", {}, el("a", { href: `/robots?key=${encodeURIComponent(r.robot.key)}` }, r.station || "")),
     el("td", {}, when(r.created)),
     el("td", {}, el("a", { href: `/runs/${r.id}/report` }, "report")))));
