@@ -54,29 +54,29 @@ def _hard_exit_later(seconds: float) -> None:
     timer.start()
 
 
-def _run_ahead_of_the_host() -> None:
+def _run_ahead_of_the_host(nice: int) -> None:
     """A twin stands for a device with a processor of its own, so where the OS lets it (root or
-    CAP_SYS_NICE) its session's scheduling group and its threads get the weight of nice
-    ``TWIN_NICE``: a host busy on every core (a test run, an engine analysing, CPU burners) then
-    delays the twin's answers and its 500 Hz cycle about as little as it would a real device's.
-    Elsewhere nothing changes."""
+    CAP_SYS_NICE) its session's scheduling group and its threads get the weight of ``nice``
+    (``TWIN_NICE`` unless the twin's owner says otherwise): a host busy on every core (a test run, an
+    engine analysing, CPU burners) then delays the twin's answers and its 500 Hz cycle about as
+    little as it would a real device's. Elsewhere nothing changes."""
     try:
         with open("/proc/self/autogroup", "w", encoding="ascii") as autogroup:  # Linux's per-session group
-            autogroup.write(str(TWIN_NICE))
+            autogroup.write(str(nice))
     except OSError:
         pass
     try:
-        os.setpriority(os.PRIO_PROCESS, 0, TWIN_NICE)  # this thread; threads started later inherit it
+        os.setpriority(os.PRIO_PROCESS, 0, nice)  # this thread; threads started later inherit it
     except OSError:
         pass
 
 
-def _child_main(factory_path: str, kwargs: dict[str, Any], conn: Connection, parent_pid: int) -> None:
+def _child_main(factory_path: str, kwargs: dict[str, Any], conn: Connection, parent_pid: int, nice: int) -> None:
     # A twin is a device of its own: its own session, so a terminal's signals do not reach it and,
     # with the kernel's autogroup scheduling, busy processes of another session (a test run, a CPU
     # burner) share the CPU with it as one group instead of crowding it out thread by thread.
     os.setsid()
-    _run_ahead_of_the_host()
+    _run_ahead_of_the_host(nice)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     # The parent marks us daemonic (it terminates us if it exits without stopping us), and
     # multiprocessing refuses children to daemonic processes. A host may run twin processes of its
@@ -175,8 +175,9 @@ class TwinProcess:
     """
 
     def __init__(self, factory: str, kwargs: dict[str, Any] | None = None, *, start_timeout: float = 30.0,
-                 call_timeout: float = 10.0, name: str | None = None) -> None:
+                 call_timeout: float = 10.0, name: str | None = None, nice: int = TWIN_NICE) -> None:
         self.factory = factory
+        self.nice = nice
         self.kwargs = dict(kwargs or {})
         self.start_timeout = start_timeout
         self.call_timeout = call_timeout
@@ -195,7 +196,8 @@ class TwinProcess:
         """Start the child process (it builds and starts its host in the background)."""
         ctx = multiprocessing.get_context("spawn")
         parent, child = ctx.Pipe()
-        process = ctx.Process(target=_child_main, args=(self.factory, self.kwargs, child, os.getpid()), daemon=True)
+        process = ctx.Process(target=_child_main, args=(self.factory, self.kwargs, child, os.getpid(), self.nice),
+                              daemon=True)
         self._process = process
         process.start()
         child.close()

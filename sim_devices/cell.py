@@ -39,7 +39,7 @@ import numpy as np
 import yaml
 
 from sim_devices._config import checked_fields
-from sim_devices._process import TwinProcess, TwinProcessError
+from sim_devices._process import TWIN_NICE, TwinProcess, TwinProcessError
 from sim_devices._transforms import invert, matrix_to_pose6
 from sim_devices.camera import OpticalBench
 from sim_devices.control import ControlClient, ControlServer, dispatch
@@ -356,8 +356,10 @@ class CellHost:
         return self.endpoints
 
     def _launch(self, name: str, kwargs: dict[str, Any]) -> None:
+        # The renderer is not real time (a settled pose waits for it, bounded by the acknowledgement
+        # timeout): it keeps the host's priority, so it never crowds out the robot's 500 Hz cycle.
         process = TwinProcess("sim_devices._cell_twins:CellTwin", kwargs, start_timeout=60.0, call_timeout=30.0,
-                              name=f"{name} twin")
+                              name=f"{name} twin", nice=0 if name == "cameras" else TWIN_NICE)
         handle = self._twins[name] = TwinHandle(name, process)
         self._started.append((name, handle))
         process.launch()

@@ -42,7 +42,8 @@ LONGEST_FIRST = {
 INTEGRATION = {
     "test_abb_twin.py", "test_robot_abb.py", "test_camera_aravis.py", "test_gige_motion.py",
     "test_gige_pygigevision.py", "test_gige_standalone.py", "test_gige_stream.py",
-    "test_camera_stream.py", "test_cell.py", "test_cli_interrupts.py", "test_cli_run_output.py", "test_opcua_docs.py", "test_device_settings.py",
+    "test_camera_stream.py", "test_cell.py", "test_cli_interrupts.py", "test_cli_run_output.py",
+    "test_opcua_docs.py", "test_device_settings.py",
     "test_dynamic_procedures.py", "test_dynamic_system.py", "test_fault_matrix.py", "test_faults_and_process.py",
     "test_fuzz_inputs.py", "test_interferometer_can.py", "test_interferometer_timing.py", "test_kill_resume.py",
     "test_procedures_hostile_inputs.py", "test_pty_relay.py", "test_robot_dynamic.py", "test_robot_isolation.py",

@@ -421,12 +421,14 @@ def test_the_stream_keeps_its_grid_while_a_settled_pose_waits_for_a_slow_subscri
             packages = probe.take()
         assert slow and done_at >= slow[-1][2]  # done only after the subscriber had the settled pose
         before, after, _ = slow[-1]
-        # The cycle is wall-clock paced and made up when late (a loaded machine): 0.3 s is 150 slots,
-        # and none would pass if the subscriber held the cycle up.
-        assert after - before > 50
+        # The cycle is wall-clock paced and made up when late: 0.3 s is 150 slots; on a loaded machine
+        # this in-process cycle thread gets fewer of them done, but none would pass if the subscriber
+        # held the cycle up.
+        assert after - before > 5, (before, after)
         slots = np.round(np.array([p.values["timestamp"] for p in packages]) / 0.002)
         window = slots[(slots >= before) & (slots <= after)]
-        assert len(window) > 50 and (np.all(np.diff(window) == 1) or controller.skipped_cycles > 0)
+        assert len(window) == after - before + 1 or controller.skipped_cycles > 0  # every slot sent, in order
+        assert np.all(np.diff(window) == 1) or controller.skipped_cycles > 0
     finally:
         twin.stop()
 

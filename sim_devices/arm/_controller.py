@@ -11,7 +11,7 @@ the controller started) and simulated time ``k · period · time_scale`` (motion
 immutable ``CycleState`` (joints, poses, speeds, currents, modes, a copy of every register) and
 hands it to the RTDE streams, which pack each client's recipe from it. A late cycle does not skip
 its slot: the thread steps and sends every slot it missed, back to back (up to ``MAX_CATCH_UP``
-slots, 3 s; a longer stall resynchronises and is counted in ``skipped_cycles``).
+slots, 1 s; a longer stall resynchronises and is counted in ``skipped_cycles``).
 
 What the controller reports and what is true
 --------------------------------------------
@@ -84,9 +84,9 @@ SAFETY_BIT_STOPPED_DUE_TO_SAFETY = 1 << 10
 JOINT_RUNNING_MODE = 253
 MID_MOVE_FAULTS = (FaultKind.PROTECTIVE_STOP, FaultKind.EMERGENCY_STOP, FaultKind.PROGRAM_STOPPED,
                    FaultKind.DISCONNECT)
-# Slots a late cycle thread makes up for (3 s); beyond that it resynchronises, and the motion jumps
+# Slots a late cycle thread makes up for (1 s); beyond that it resynchronises, and the motion jumps
 # ahead by the gap. A loaded host delays a cycle by far less, but repeatedly: it must catch up.
-MAX_CATCH_UP = 1500
+MAX_CATCH_UP = 500
 DONE_AFTER_CYCLES = 2  # "done" goes out this many cycles (4 ms) after the final pose was first streamed
 
 # A coarse UR5e mass model for the joint currents: link masses (kg) at the middle of each link,
