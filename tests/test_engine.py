@@ -530,3 +530,39 @@ def test_frames_exposed_before_the_motion_ended_are_measured_again_whatever_they
         proof = sample.solved.quality.exposure
         assert proof is not None and len(proof.frames) == 3 and proof.motion_ended is not None
         assert all(f.evidence == "exposure" and f.at >= proof.motion_ended for f in proof.frames)
+
+
+class _RealFitScience(FakeScience):
+    """The fakes' measurements, the instrument's own calibration fit (which refuses degenerate data)."""
+
+    def fit_calibration(self, kind, data, provenance):
+        from procedures.station import InstrumentScience
+        return InstrumentScience.fit_calibration(self, kind, data, provenance)  # uses no state of its own
+
+
+def test_a_calibration_whose_points_all_failed_ends_with_one_line_saying_so(setup):
+    """Every attempt at the first of 5 points fails: 4 points are too few for the held-out fit, and the
+    run ends with a typed one-line reason naming the lost point, not an untyped ValueError."""
+    tmp_path, station, cell = setup
+    proc = _procedure(tmp_path, "displacement_calibration", axes="[y]", repeats=2, groups=1, stop_mm=20,
+                      group_start_offsets_mm="[[0, 0, 0]]", retry_backoff_s=0, retries_per_pose=1,
+                      max_failed_samples=10)
+    cell.fail_measures = 2  # the first step (y = 0 mm, repeat 0): both its attempts fail
+
+    def listener(event):  # ... and the first step of repeat 1, which follows step 4
+        if event["event"] == "progress" and event["step"] == 4:
+            cell.fail_measures = 2
+
+    with open_engine(tmp_path / "runs", procedure=proc, station=station, science=_RealFitScience(cell),
+                     devices=cell.devices(), operator=cell.operator, listener=listener) as engine:
+        state = engine.execute()
+        run = engine.store.get_run(engine.run_id)
+        events = engine.store.events(engine.run_id)
+        samples = engine.store.samples(engine.run_id)
+    assert [s.ok for s in samples] == [False, True, True, True, True] * 2
+    assert state == "FAILED"
+    reason = run["reason"]
+    assert "\n" not in reason and "ValueError" not in reason and "Traceback" not in reason
+    assert reason.startswith("the calibration analysis refused the data: y: leave-one-point-out needs at least 5")
+    assert "every sample failed at y point 0" in reason
+    assert not [e for e in events if e["kind"] == "traceback"]

@@ -12,6 +12,7 @@ import numpy as np
 from pydantic import ValidationInfo
 
 from instrument import COMPONENTS, __version__
+from instrument.compensation import InsufficientCalibrationData
 from instrument.environment import AirConditions
 from procedures.kinds._conditions import local_time, operator_of
 from procedures.kinds._environment import environment_summary
@@ -31,6 +32,7 @@ from procedures.kinds.calibration._results import (
     reference_vs_truth,
     residual_uncertainties,
 )
+from procedures.station import RunError
 from procedures.store import Sample
 
 MAX_PLAN_STEPS = 100_000
@@ -107,6 +109,26 @@ def record_file(record_path: str | None, ctx: AnalysisContext, kind: str) -> Pat
     return path
 
 
+def _lost_points(samples: Sequence[Sample]) -> str:
+    """'; every sample failed at x point 3, z point 0 (...)': the calibration points without a single
+    good sample (the usual reason a fit lacks points), or '' when there are none."""
+    good: set[tuple[str, int]] = set()
+    tried: dict[tuple[str, int], str] = {}
+    for sample in samples:
+        if sample.phase != "calibration" or not sample.meta or "axis" not in sample.meta:
+            continue
+        key = (str(sample.meta["axis"]), int(sample.meta.get("point", -1)))
+        if sample.ok and sample.solved is not None:
+            good.add(key)
+        else:
+            tried[key] = sample.error or "failed"
+    lost = sorted(set(tried) - good)
+    if not lost:
+        return ""
+    names = ", ".join(f"{axis} point {point}" for axis, point in lost[:6]) + (" ..." if len(lost) > 6 else "")
+    return f"; every sample failed at {names} (the last: {tried[lost[-1]]})"
+
+
 def analyse_calibration(samples: Sequence[Sample], ctx: AnalysisContext, *, kind: str,
                         component_of_axis: Mapping[str, str], reference_instrument: str,
                         record_path: str | None, params: MotionParameters, approach: str = "one",
@@ -155,7 +177,7 @@ def analyse_calibration(samples: Sequence[Sample], ctx: AnalysisContext, *, kind
                 entry["true"] = true_pose[index]
         data.setdefault(component, []).append(entry)
     if not data:
-        raise ValueError("no successful calibration samples to fit")
+        raise RunError("the calibration analysis has no successful sample to fit" + _lost_points(samples))
     for rows in data.values():
         join_datums(rows)
     air = environment_summary(environment)
@@ -181,9 +203,12 @@ def analyse_calibration(samples: Sequence[Sample], ctx: AnalysisContext, *, kind
     temperature = None if mean_air is None or mean_air.get("air_temperature_k") is None \
         else mean_air["air_temperature_k"] - 273.15
     first = min((s.t_measured for s in samples if s.t_measured is not None), default=None)
-    fit = ctx.science.fit_calibration(kind, data, {
-        "run_id": ctx.run_id, "date": local_time(first) or time.strftime("%Y-%m-%dT%H:%M:%S"),
-        "references": [reference_entry], "temperature_c": temperature})
+    try:
+        fit = ctx.science.fit_calibration(kind, data, {
+            "run_id": ctx.run_id, "date": local_time(first) or time.strftime("%Y-%m-%dT%H:%M:%S"),
+            "references": [reference_entry], "temperature_c": temperature})
+    except InsufficientCalibrationData as exc:  # degenerate data: one line saying why, never a crash
+        raise RunError(f"the calibration analysis refused the data: {exc}{_lost_points(samples)}") from None
     path = record_file(record_path, ctx, kind)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(fit.record_json, encoding="utf-8")
