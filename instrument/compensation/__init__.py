@@ -85,6 +85,7 @@ from instrument.compensation._record import (
 )
 from instrument.compensation._spline import SplineCurve, fit_spline_curve, reinsch_penalty
 from instrument.compensation._synthetic import (
+    HARD_PROFILES,
     Campaign,
     HeldOutSet,
     SyntheticScenario,
@@ -99,6 +100,7 @@ __all__ = [
     "ARCSEC",
     "COMPONENTS",
     "FORMAT_VERSION",
+    "HARD_PROFILES",
     "LINEAR_COMPONENTS",
     "LOGO",
     "LOPO",
