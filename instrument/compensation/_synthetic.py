@@ -188,6 +188,9 @@ HARD_HYSTERESIS = {"linear": (2.0, 4.0), "angular": (0.7, 1.3)}  # full differen
 #:     6.0–6.8 steps and its second harmonic (3.0–3.4 steps), 0.5–1× the fundamental's amplitude.
 HARD_PROFILES = ("hard", "short-ripple", "ripple-alone", "harmonics")
 _FAST_PERIODS = {"short-ripple": (3.0, 3.4), "ripple-alone": (3.0, 6.0), "harmonics": (3.0, 3.4)}
+#: The other profiles' fast ripple: up to 5 µm / 4″ (drawn 0.6–1×), 8–12× an observation's noise, as
+#: encoder eccentricity and gear ripple of a robot axis can be.
+SHORT_RIPPLE_AMPLITUDES = {"linear": 5.0, "angular": 4.0}
 
 
 def _non_integer(rng: np.random.Generator, lo: float, hi: float) -> float:
@@ -218,6 +221,7 @@ def _hard_error(rng: np.random.Generator, nominal: np.ndarray, unit: float, angu
         extra = extra if extra is not None else rng
         fast = ripple_period if ripple_period is not None else extra.uniform(*_FAST_PERIODS.get(profile, (3.4, 6.0)))
         p1 = fast * step
+        r1 *= SHORT_RIPPLE_AMPLITUDES["angular" if angular else "linear"] / amplitudes[3]
         if profile == "ripple-alone":
             a2 = a3 = r2 = b0 = b1 = 0.0
         if profile == "harmonics":
