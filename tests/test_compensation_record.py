@@ -55,7 +55,8 @@ def test_calibrate_needs_nothing_but_the_data(scenario):
     rec = calibrate(scenario.data["y"])
     assert rec.components == ("y",) and rec.provenance == Provenance()
     assert rec.method_for("y") == rec.evaluation.best("y")
-    assert {r.method for r in rec.evaluation.rows} == {"csf-ppso-esn", "csf", "polynomial", "gaussian_process", "none"}
+    assert {r.method for r in rec.evaluation.rows} == {"csf-ppso-esn", "csf", "csf+ripple", "polynomial", "gaussian_process",
+                                                      "none"}
     data = scenario.data["y"]
     residual = rec.correct("y", data.measured).corrected - data.reference  # each group keeps its offset
     residual += rec.models["y"].alignment.offsets_of(data.group)

@@ -33,6 +33,7 @@ from instrument.compensation._compensators import (
     curve_from_dict,
     default_compensators,
 )
+from instrument.compensation._csf_esn import SELECTIONS, decode, tune_csf_esn
 from instrument.compensation._data import (
     ANGULAR_COMPONENTS,
     ARCSEC,
@@ -47,15 +48,12 @@ from instrument.compensation._data import (
     point_means,
 )
 from instrument.compensation._esn import (
-    SELECTIONS,
     CsfEsnCurve,
     EsnHyperparameters,
     Reservoir,
-    decode,
     features,
     joint_fit,
     make_reservoir,
-    tune_csf_esn,
 )
 from instrument.compensation._evaluate import (
     LOGO,
