@@ -14,6 +14,7 @@ from instrument.compensation import (
     NoCompensation,
     ParetoResult,
     PolynomialCompensator,
+    RippleSplineCompensator,
     SmoothingSplineCompensator,
     align_groups,
     features,
@@ -40,6 +41,7 @@ def fast_methods(seed=0):
     return {
         "csf-ppso-esn": CsfPpsoEsnCompensator(seed=seed, n_particles=8, n_iterations=6),
         "csf": SmoothingSplineCompensator(),
+        "csf+ripple": RippleSplineCompensator(),
         "polynomial": PolynomialCompensator(),
         "gaussian_process": GaussianProcessCompensator(),
         "none": NoCompensation(),

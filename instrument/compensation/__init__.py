@@ -1,8 +1,10 @@
 """Error compensation of the six pose components (method.md §4; paper §3, eqs 18–37).
 
-CSF (smoothing spline, λ by GCV on a log grid) → group alignment → PPSO-tuned CSF + ESN, plus
-baselines behind one interface, direction-aware (hysteresis) fitting, an honest held-out
-evaluation (leave one point out, leave one group out), and a versioned calibration record.
+CSF (smoothing spline, λ by GCV on a log grid) → group alignment → PPSO-tuned CSF + ripple + ESN,
+plus CSF + ripple (periodic errors a few calibration steps long) and baselines behind one
+interface, direction-aware (hysteresis) fitting, an honest held-out evaluation (leave one point
+out, leave one group out), and a versioned calibration record that says how close each component
+is to its noise floor.
 Pure: no I/O (procedures read and write the record's JSON text).
 
 Quick use::
@@ -28,6 +30,7 @@ from instrument.compensation._compensators import (
     GaussianProcessCompensator,
     NoCompensation,
     PolynomialCompensator,
+    RippleSplineCompensator,
     SmoothingSplineCompensator,
     aligned_points,
     curve_from_dict,
@@ -72,15 +75,18 @@ from instrument.compensation._ppso import (
     ppso_minimize,
 )
 from instrument.compensation._record import (
+    FLOOR_RATIO_LIMITS,
     FORMAT_VERSION,
     READABLE_VERSIONS,
     CalibrationRecord,
     CalibrationRecordError,
     CorrectionResult,
+    FloorRatio,
     PoseCorrection,
     Provenance,
     calibrate,
 )
+from instrument.compensation._ripple import PERIOD_RANGE, RippleSearch, find_ripples, fit_ripple_spline
 from instrument.compensation._spline import SplineCurve, fit_spline_curve, reinsch_penalty
 from instrument.compensation._synthetic import (
     HARD_PROFILES,
@@ -97,12 +103,14 @@ __all__ = [
     "ANGULAR_COMPONENTS",
     "ARCSEC",
     "COMPONENTS",
+    "FLOOR_RATIO_LIMITS",
     "FORMAT_VERSION",
     "HARD_PROFILES",
     "LINEAR_COMPONENTS",
     "LOGO",
     "LOPO",
     "MICROMETRE",
+    "PERIOD_RANGE",
     "READABLE_VERSIONS",
     "SCHEMES",
     "SELECTIONS",
@@ -120,6 +128,7 @@ __all__ = [
     "EvaluationRow",
     "EvaluationTable",
     "FittedModel",
+    "FloorRatio",
     "GaussianProcessCompensator",
     "GaussianProcessCurve",
     "GroupAlignment",
@@ -132,6 +141,8 @@ __all__ = [
     "PoseCorrection",
     "Provenance",
     "Reservoir",
+    "RippleSearch",
+    "RippleSplineCompensator",
     "SmoothingSplineCompensator",
     "SplineCurve",
     "SyntheticScenario",
@@ -145,8 +156,10 @@ __all__ = [
     "display_unit",
     "evaluate",
     "features",
+    "find_ripples",
     "fit_gaussian_process",
     "fit_polynomial",
+    "fit_ripple_spline",
     "fit_spline_curve",
     "generational_distance",
     "hard_campaign",

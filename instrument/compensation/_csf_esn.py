@@ -260,8 +260,8 @@ def tune_csf_esn(x: np.ndarray, y: np.ndarray, w: np.ndarray, *, seed: int = 0, 
     problem = CsfEsnProblem.from_points(x, y, w, seed)
     csf_lam = smooth(problem.u, problem.y, problem.w, "gcv", end_curvature=True).lam
     if ripples:
-        point_noise = None if noise_variance is None else noise_variance / float(np.mean(w)) / problem.y_scale**2
-        search = find_ripples(problem.u, problem.y, problem.w, point_noise=point_noise)
+        search = find_ripples(problem.u, problem.y, problem.w,
+                              noise_variance=None if noise_variance is None else noise_variance / problem.y_scale**2)
         if search.omegas.size:
             problem, csf_lam = problem.with_ripples(search.omegas), search.lam
     interior = _interior(problem.u.size)
