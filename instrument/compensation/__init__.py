@@ -68,6 +68,7 @@ from instrument.compensation._evaluate import (
     leave_one_group_out_residuals,
     leave_one_point_out_residuals,
 )
+from instrument.compensation._floor import FLOOR_RATIO_LIMITS, FloorRatio
 from instrument.compensation._ppso import (
     ParetoResult,
     generational_distance,
@@ -75,13 +76,11 @@ from instrument.compensation._ppso import (
     ppso_minimize,
 )
 from instrument.compensation._record import (
-    FLOOR_RATIO_LIMITS,
     FORMAT_VERSION,
     READABLE_VERSIONS,
     CalibrationRecord,
     CalibrationRecordError,
     CorrectionResult,
-    FloorRatio,
     PoseCorrection,
     Provenance,
     calibrate,

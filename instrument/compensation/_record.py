@@ -31,20 +31,14 @@ from instrument.compensation._data import (
     as_data_mapping,
     check_direction,
 )
-from instrument.compensation._evaluate import LOGO, LOPO, EvaluationTable, evaluate
+from instrument.compensation._evaluate import EvaluationTable, evaluate
+from instrument.compensation._floor import FloorRatio, kept_model_floor_ratios
 from instrument.compensation._legacy import upgrade_v1_payload
 
 FORMAT_NAME = "opr-calibration-record"
 FORMAT_VERSION = 3
 READABLE_VERSIONS = (1, 2, 3)
 PER_COMPONENT_BEST = "per-component best"
-
-#: Held-out RMS of the kept model over the noise floor, per scheme, above which a component is
-#: reported as not at the floor yet (``FloorRatio.at_floor``). Leaving a point out doubles the local
-#: step, so a model at the floor between the points still shows up to about 2.7 there (measured on
-#: the hard benchmark); leaving a group out scores the curve at the calibration points, where such a
-#: model shows 1.0–1.15. A ripple the model smooths away gives 3–7 and 1.3–2 (issue 25).
-FLOOR_RATIO_LIMITS = {LOPO: 3.0, LOGO: 1.25}
 
 
 class CalibrationRecordError(ValueError):
@@ -167,68 +161,6 @@ class PoseCorrection:
         return [m for r in self.results.values() for m in r.messages()]
 
 
-@dataclass(frozen=True)
-class FloorRatio:
-    """How close the kept model's held-out RMS is to the data's noise floor, for one component.
-
-    Attributes
-    ----------
-    component : str
-    method : the kept model's method
-    noise_floor : pooled repeat scatter of one observation (SI): what no curve can remove
-    heldout_rms : scheme → the kept model's held-out RMS (SI), for the schemes evaluated
-
-    Notes
-    -----
-    A ratio of 1 is the best any model can do. Leaving one point out doubles the local step, so
-    that ratio overstates the error between calibration points; leaving one group out scores the
-    curve at the calibration points only. ``at_floor`` compares each with ``FLOOR_RATIO_LIMITS``.
-    """
-
-    component: str
-    method: str
-    noise_floor: float
-    heldout_rms: dict[str, float]
-
-    def ratio(self, scheme: str = LOPO) -> float:
-        """Held-out RMS / noise floor under ``scheme`` (inf for a zero floor)."""
-        rms = self.heldout_rms[scheme]
-        return rms / self.noise_floor if self.noise_floor > 0 else float("inf")
-
-    @property
-    def ratios(self) -> dict[str, float]:
-        return {scheme: self.ratio(scheme) for scheme in self.heldout_rms}
-
-    @property
-    def at_floor(self) -> bool:
-        """No ratio above its limit (``FLOOR_RATIO_LIMITS``; schemes without a limit do not count)."""
-        return all(self.ratio(s) <= FLOOR_RATIO_LIMITS[s] for s in self.heldout_rms if s in FLOOR_RATIO_LIMITS)
-
-    def message(self) -> str:
-        """One line: the ratios, and whether the component is at the floor."""
-        ratios = ", ".join(f"{r:.2f}x ({scheme})" for scheme, r in self.ratios.items())
-        verdict = "at the noise floor" if self.at_floor else "not at the noise floor yet"
-        return f"{self.component}: kept {self.method}, held-out RMS {ratios} the noise floor: {verdict}"
-
-    def to_dict(self) -> dict:
-        return {"method": self.method, "noise_floor": self.noise_floor, "heldout_rms": dict(self.heldout_rms),
-                "ratio": {s: (r if math.isfinite(r) else None) for s, r in self.ratios.items()},
-                "at_floor": self.at_floor}
-
-
-def _floor_ratios(models: Mapping[str, FittedModel], evaluation: EvaluationTable | None) -> dict[str, FloorRatio]:
-    """The kept model's held-out RMS against the noise floor, from the evaluation's rows."""
-    out: dict[str, FloorRatio] = {}
-    if evaluation is None:
-        return out
-    for component, model in models.items():
-        rows = evaluation.select(component, model.method)
-        if rows and math.isfinite(rows[0].noise_floor):
-            out[component] = FloorRatio(component, model.method, rows[0].noise_floor,
-                                        {r.scheme: r.rms for r in rows if math.isfinite(r.rms)})
-    return out
-
-
 def _canonical(payload: dict) -> str:
     return json.dumps(payload, sort_keys=True, separators=(",", ":"), allow_nan=False)
 
@@ -330,7 +262,7 @@ class CalibrationRecord:
     def floor_ratios(self) -> dict[str, FloorRatio]:
         """Component → how close the kept model's held-out RMS is to the noise floor (components
         without an evaluation of their kept method are absent)."""
-        return _floor_ratios(self.models, self.evaluation)
+        return kept_model_floor_ratios(self.models, self.evaluation)
 
     def floor_messages(self) -> list[str]:
         """One line per component whose kept model is not at the noise floor yet (empty when all are)."""

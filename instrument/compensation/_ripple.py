@@ -16,14 +16,15 @@ leave-one-point-out residuals are exact in closed form.
 
 What the grid can resolve. Sampled on a uniform grid of step h, a ripple of period P > 2h (the
 Nyquist limit) is seen as itself; one of period P < 2h is seen exactly as a longer alias
-(1.5h looks like 3h, 0.75h like 3h/... — every f + k and k − f cycles per step coincide), and near
+(1.5h and 0.75h both look like 3h: on the grid f and k ± f cycles per step coincide), and near
 2h its phase is lost (at exactly 2h its sine vanishes at every point). In the paper's design the
 groups revisit the same nominal points (start positions within ±0.01 mm, 0.2 % of a 5 mm step;
 their error offsets shift the measured value by well under 1 % of a step), so they add repeats,
 not positions: nothing in such data can tell a ripple of 1.5 steps from one of 3 steps. The
 search looks for periods in ``PERIOD_RANGE`` (2.5–8 steps), where the grid determines a period
-uniquely; longer periods are the spline's. What it finds is reported (``Ripple.period_steps``),
-so a user who knows the mechanism (a gear ratio, an encoder's line count) can check it.
+uniquely; longer periods are the spline's. What it finds is reported (``RippleSearch.periods_steps``,
+a model's ``details["ripple_periods_steps"]``), so a user who knows the mechanism (a gear ratio,
+an encoder's line count) can check it.
 
 Search. Every period of a grid over ``PERIOD_RANGE`` (8 frequencies per 1/span) and every λ of a
 logarithmic grid are scored at once by the exact leave-one-point-out mean square over the interior
@@ -50,7 +51,13 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 
 from instrument.compensation._memo import Memo, digest
-from instrument.compensation._spline import PartialSpline, SplineCurve, curvature_column, ripple_columns
+from instrument.compensation._spline import (
+    PartialSpline,
+    SplineCurve,
+    curvature_column,
+    ripple_columns,
+    scaled_points,
+)
 
 #: Periods searched, in grid steps (median spacing of the calibration points).
 PERIOD_RANGE = (2.5, 8.0)
@@ -253,14 +260,7 @@ def fit_ripple_spline(x: np.ndarray, y: np.ndarray, w: np.ndarray | None = None,
         With ``ripple_omegas`` empty when no ripple was kept (then the CSF with end curvature,
         λ by leave-one-point-out).
     """
-    x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
-    w = np.ones_like(x) if w is None else np.asarray(w, dtype=float)
-    order = np.argsort(x)
-    x, y, w = x[order], y[order], w[order]
-    center, half_span = 0.5 * (x[0] + x[-1]), 0.5 * (x[-1] - x[0])
-    if not half_span > 0:
-        raise ValueError("the calibration points must span a non-zero range")
-    u = (x - center) / half_span
+    u, y, w, center, half_span = scaled_points(x, y, w)
     scale = float(np.std(y)) or 1.0
     search = find_ripples(u, y / scale, w, noise_variance=None if noise_variance is None else noise_variance / scale**2,
                           max_ripples=max_ripples)
@@ -269,5 +269,5 @@ def fit_ripple_spline(x: np.ndarray, y: np.ndarray, w: np.ndarray | None = None,
     hat, parameters = spline.smoother(search.lam)
     theta = parameters @ y
     n = u.size
-    return SplineCurve(float(center), float(half_span), np.zeros(1), u, theta[:n], search.lam,
+    return SplineCurve(center, half_span, np.zeros(1), u, theta[:n], search.lam,
                        float(np.trace(hat)), float(theta[n]), search.omegas, theta[n + 1:])

@@ -281,6 +281,29 @@ class SplineCurve:
                    float(d["effective_dof"]), float(d.get("curvature", 0.0)), omegas, coefficients)
 
 
+def scaled_points(x: np.ndarray, y: np.ndarray, w: np.ndarray | None = None
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float]:
+    """Point means sorted by x, with x scaled to u ∈ [−1, 1] as every curve here stores it.
+
+    Returns
+    -------
+    u, y, w, center, half_span : sorted arrays (w default equal) and u = (x − center) / half_span
+
+    Raises
+    ------
+    ValueError
+        The points span no range.
+    """
+    x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
+    w = np.ones_like(x) if w is None else np.asarray(w, dtype=float)
+    order = np.argsort(x)
+    x, y, w = x[order], y[order], w[order]
+    center, half_span = 0.5 * (x[0] + x[-1]), 0.5 * (x[-1] - x[0])
+    if not half_span > 0:
+        raise ValueError("the calibration points must span a non-zero range")
+    return (x - center) / half_span, y, w, float(center), float(half_span)
+
+
 def fit_spline_curve(x: np.ndarray, y: np.ndarray, w: np.ndarray | None = None, *, criterion: str = "gcv",
                      trend_degree: int = 0, end_curvature: bool = False, lam: float | None = None) -> SplineCurve:
     """Fit the CSF curve to point means.
@@ -298,15 +321,7 @@ def fit_spline_curve(x: np.ndarray, y: np.ndarray, w: np.ndarray | None = None, 
     -------
     SplineCurve
     """
-    x = np.asarray(x, dtype=float)
-    y = np.asarray(y, dtype=float)
-    w = np.ones_like(x) if w is None else np.asarray(w, dtype=float)
-    order = np.argsort(x)
-    x, y, w = x[order], y[order], w[order]
-    center, half_span = 0.5 * (x[0] + x[-1]), 0.5 * (x[-1] - x[0])
-    if not half_span > 0:
-        raise ValueError("the calibration points must span a non-zero range")
-    u = (x - center) / half_span
+    u, y, w, center, half_span = scaled_points(x, y, w)
     trend = np.zeros(1)
     if trend_degree > 0:
         trend = np.polyfit(u, y, trend_degree, w=np.sqrt(w))
