@@ -15,6 +15,7 @@ from instrument.compensation import (
     find_ripples,
     hard_campaign,
     held_out_residuals,
+    paper_like_scenario,
     ppso_minimize,
     synthetic_calibration,
 )
@@ -167,3 +168,26 @@ def test_the_gp_alone_misses_the_ripple_between_points():
             ratios.append(rms(residual) / rms(oracle))
     gp, ripple = np.mean(ratios[0::2]), np.mean(ratios[1::2])
     assert gp > 1.12 and ripple < 1.1
+
+
+def test_smooth_paper_like_curves_are_not_overfitted():
+    """No overfit on smooth data (issue 25): on the paper-like scenario (scale, quadratic and one slow
+    sine of 6-10 steps) the ripple search adds nothing shorter than the slow sine, csf+ripple stays as
+    close to the true curve as the CSF with end curvature, and CSF-PPSO-ESN with the ripple search
+    predicts exactly what it predicted without it wherever the search keeps none."""
+    scenario = paper_like_scenario(0)
+    for component, data in scenario.data.items():
+        truth = scenario.true_error[component]
+        true_value = np.linspace(data.reference.min(), data.reference.max(), 301)[1:-1]
+        probe, reference = true_value + truth(true_value), truth(true_value)  # measured, its true error
+        ripple = RippleSplineCompensator().fit(data)
+        plain = SmoothingSplineCompensator(criterion="loo", end_curvature=True).fit(data)
+        periods = ripple.details["ripple_periods_steps"]
+        assert all(p > 5.5 for p in periods), (component, periods)  # never a fast one on a smooth curve
+        curve_error = rms(ripple.predict(probe) - reference)
+        assert curve_error < 1.1 * rms(plain.predict(probe) - reference) + 0.02 * scenario.noise_sigma[component]
+        assert curve_error < 0.5 * scenario.noise_sigma[component], component  # 9 observations per point
+        if not periods:
+            with_search = CsfPpsoEsnCompensator(n_particles=6, n_iterations=4).fit(data)
+            without = CsfPpsoEsnCompensator(n_particles=6, n_iterations=4, ripples=False).fit(data)
+            np.testing.assert_allclose(with_search.predict(probe), without.predict(probe), rtol=0, atol=1e-15)
