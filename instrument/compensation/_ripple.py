@@ -48,7 +48,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import minimize_scalar
 
 from instrument.compensation._memo import Memo, digest
 from instrument.compensation._spline import (
@@ -144,6 +143,7 @@ class _Scan:
 
     def best(self, omegas: np.ndarray) -> tuple[float, float, np.ndarray]:
         """(mean square, log λ, interior squared residuals) of the best λ for these ripples, λ refined."""
+        from scipy.optimize import minimize_scalar
         x = self.columns(omegas)[None]
         grid = self.scores(x)[:, 0]
         k = int(np.argmin(grid))
@@ -208,6 +208,7 @@ _SEARCHES: Memo[RippleSearch] = Memo()
 
 def _search(u: np.ndarray, y: np.ndarray, w: np.ndarray, noise_variance: float | None, max_ripples: int
             ) -> RippleSearch:
+    from scipy.optimize import minimize_scalar
     step_u = float(np.median(np.diff(u)))
     span_steps = float(u[-1] - u[0]) / step_u
     scan = _Scan(u, y, w)
