@@ -14,6 +14,7 @@ from instrument.compensation import (
     NoCompensation,
     ParetoResult,
     PolynomialCompensator,
+    RippleSplineCompensator,
     SmoothingSplineCompensator,
     align_groups,
     features,
@@ -40,6 +41,7 @@ def fast_methods(seed=0):
     return {
         "csf-ppso-esn": CsfPpsoEsnCompensator(seed=seed, n_particles=8, n_iterations=6),
         "csf": SmoothingSplineCompensator(),
+        "csf+ripple": RippleSplineCompensator(),
         "polynomial": PolynomialCompensator(),
         "gaussian_process": GaussianProcessCompensator(),
         "none": NoCompensation(),
@@ -212,7 +214,7 @@ def test_csf_esn_held_out_objective_equals_refits_without_each_point(scenario):
 def test_model_choice_in_the_objectives_own_unit():
     """min_heldout and ideal_point choose on the front; one_se takes, among every evaluated model within
     one standard error of the best held-out RMS, the one with the fewest effective degrees of freedom."""
-    from instrument.compensation._esn import SwarmLog, select
+    from instrument.compensation._csf_esn import SwarmLog, select
 
     # training RMS barely varies, held-out RMS spans decades (the issue's failure mode)
     f = np.array([[0.000, 5.0], [0.001, 0.50], [0.002, 0.21], [0.003, 0.20]])

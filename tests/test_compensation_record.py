@@ -10,6 +10,7 @@ import pytest
 from instrument.compensation import (
     COMPONENTS,
     FORMAT_VERSION,
+    LOGO,
     LOPO,
     CalibrationData,
     CalibrationRecord,
@@ -22,6 +23,7 @@ from instrument.compensation import (
     Provenance,
     SmoothingSplineCompensator,
     calibrate,
+    hard_campaign,
     paper_like_scenario,
 )
 
@@ -33,6 +35,7 @@ PROVENANCE = Provenance(
     temperature_c=20.4,
 )
 FORMAT_1 = json.loads((Path(__file__).parent / "data" / "compensation_record_v1.json").read_text(encoding="utf-8"))
+FORMAT_2 = json.loads((Path(__file__).parent / "data" / "compensation_record_v2.json").read_text(encoding="utf-8"))
 
 
 @pytest.fixture(scope="module")
@@ -55,7 +58,8 @@ def test_calibrate_needs_nothing_but_the_data(scenario):
     rec = calibrate(scenario.data["y"])
     assert rec.components == ("y",) and rec.provenance == Provenance()
     assert rec.method_for("y") == rec.evaluation.best("y")
-    assert {r.method for r in rec.evaluation.rows} == {"csf-ppso-esn", "csf", "polynomial", "gaussian_process", "none"}
+    assert {r.method for r in rec.evaluation.rows} == {"csf-ppso-esn", "csf", "csf+ripple", "polynomial",
+                                                      "gaussian_process", "none"}
     data = scenario.data["y"]
     residual = rec.correct("y", data.measured).corrected - data.reference  # each group keeps its offset
     residual += rec.models["y"].alignment.offsets_of(data.group)
@@ -71,7 +75,7 @@ def test_record_round_trip_keeps_everything(record):
     probe = np.linspace(0.0, 0.07, 31)
     np.testing.assert_array_equal(again.correct("x", probe).corrected, record.correct("x", probe).corrected)
     payload = json.loads(text)
-    assert payload["format_version"] == FORMAT_VERSION == 2 and payload["units"] == {"x": "m", "a": "rad"}
+    assert payload["format_version"] == FORMAT_VERSION == 3 and payload["units"] == {"x": "m", "a": "rad"}
     assert payload["approach_directions"] == {"x": [], "a": []}
     assert payload["methods"] == {c: record.method_for(c) for c in ("x", "a")}
     # the kept method per component is the leave-one-point-out winner, and the record says on what data
@@ -144,7 +148,7 @@ def test_unknown_components_and_bad_values_are_refused(record):
 def test_a_format_1_record_still_loads_and_corrects_as_before():
     record = CalibrationRecord.from_json(FORMAT_1["record"])
     assert record.source_version == 1 and record.source_id == FORMAT_1["content_id"]
-    assert record.content_id != record.source_id  # its content now hashes as format 2
+    assert record.content_id != record.source_id  # its content now hashes as the current format
     assert "format-1 evaluation" in record.evaluation.note
     for component, probe in FORMAT_1["probes"].items():
         assert record.method_for(component) == probe["method"] and record.approach_directions(component) == ()
@@ -152,7 +156,55 @@ def test_a_format_1_record_still_loads_and_corrects_as_before():
         np.testing.assert_allclose(result.corrected, probe["corrected"], rtol=0, atol=1e-15)
         np.testing.assert_array_equal(result.out_of_range, probe["out_of_range"])
     upgraded = CalibrationRecord.from_json(record.to_json())
-    assert upgraded.source_version == 2 and upgraded.content_id == record.content_id
+    assert upgraded.source_version == FORMAT_VERSION and upgraded.content_id == record.content_id
+    # its evaluation covered c alone; the k-fold row has no limit, the leave-one-group-out row still counts
+    assert set(record.floor_ratios) == {"c"}
+    assert all(LOGO in f.heldout_rms and LOPO not in f.heldout_rms for f in record.floor_ratios.values())
+
+
+def test_a_format_2_record_still_loads_and_corrects_as_before():
+    """Written by format 2 (before the ripple term): a CSF-PPSO-ESN curve, GP curves and a hysteresis
+    spline correct their probe values as they did, in every approach direction."""
+    record = CalibrationRecord.from_json(FORMAT_2["record"])
+    assert record.source_version == 2 and record.source_id == FORMAT_2["content_id"] != record.content_id
+    for component, probe in FORMAT_2["probes"].items():
+        assert record.method_for(component) == probe["method"]
+        assert list(record.approach_directions(component)) == probe["directions"]
+        for key, direction in (("corrected", None), ("corrected_+1", 1), ("corrected_-1", -1)):
+            if key in probe:
+                result = record.correct(component, np.array(probe["measured"]), direction=direction)
+                np.testing.assert_allclose(result.corrected, probe[key], rtol=0, atol=1e-15)
+                np.testing.assert_array_equal(result.out_of_range, probe["out_of_range"])
+        floor = record.floor_ratios[component]
+        assert set(floor.heldout_rms) == {LOPO, LOGO} and floor.method == probe["method"]
+    again = CalibrationRecord.from_json(record.to_json())
+    assert again.source_version == FORMAT_VERSION and again.models.keys() == record.models.keys()
+    assert json.loads(record.to_json())["noise_floor"]["x"]["ratio"][LOPO] == pytest.approx(
+        record.floor_ratios["x"].ratio(LOPO))
+
+
+def test_the_record_says_how_close_each_component_is_to_the_noise_floor(record):
+    """Per component: the kept model's held-out RMS over the pooled repeat scatter, in the JSON too."""
+    payload = json.loads(record.to_json())
+    for component in ("x", "a"):
+        floor = record.floor_ratios[component]
+        kept = record.evaluation.row(component, record.method_for(component), LOPO)
+        assert floor.method == record.method_for(component) and floor.noise_floor == kept.noise_floor
+        assert floor.ratio(LOPO) == pytest.approx(kept.ratio_to_floor)
+        assert 0.8 < floor.ratio(LOGO) < 1.3 and floor.at_floor  # paper-like data: every kept model is there
+        assert payload["noise_floor"][component]["ratio"][LOPO] == pytest.approx(floor.ratio(LOPO))
+        assert payload["noise_floor"][component]["at_floor"] is True
+    assert record.floor_messages() == []
+    assert "at the noise floor" in record.floor_ratios["x"].message()
+
+
+def test_a_model_that_misses_a_ripple_is_reported_off_the_floor():
+    """The GP alone on a 3-step ripple (issue 25) is not at the floor, and the record says so."""
+    data = hard_campaign(0, "y", profile="short-ripple", ripple_period=3.0).calibration
+    rec = calibrate(data, {"gaussian_process": GaussianProcessCompensator()})
+    floor = rec.floor_ratios["y"]
+    assert floor.ratio(LOPO) > 3.0 and not floor.at_floor
+    assert rec.floor_messages() == [floor.message()] and "not at the noise floor yet" in floor.message()
 
 
 def _rehash(payload):
@@ -171,8 +223,8 @@ def _rehash(payload):
         (lambda text: text[: len(text) // 2], "not valid JSON"),
         (lambda text: "[1, 2, 3]", "JSON object"),
         (lambda text: _rehash({**json.loads(text), "format": "something-else"}), "not a calibration record"),
-        (lambda text: _rehash({**json.loads(text), "format_version": 3}),
-         "format version 3 is not supported \\(this software reads versions 1, 2\\)"),
+        (lambda text: _rehash({**json.loads(text), "format_version": 4}),
+         "format version 4 is not supported \\(this software reads versions 1, 2, 3\\)"),
         (lambda text: _rehash({k: v for k, v in json.loads(text).items() if k != "models"}), "missing field"),
         (lambda text: json.dumps({k: v for k, v in json.loads(text).items() if k != "content_id"}), "missing field"),
         (lambda text: text.replace('"run-2024-001"', '"run-2024-002"'), "content id mismatch"),

@@ -1,8 +1,10 @@
 """Error compensation of the six pose components (method.md §4; paper §3, eqs 18–37).
 
-CSF (smoothing spline, λ by GCV on a log grid) → group alignment → PPSO-tuned CSF + ESN, plus
-baselines behind one interface, direction-aware (hysteresis) fitting, an honest held-out
-evaluation (leave one point out, leave one group out), and a versioned calibration record.
+CSF (smoothing spline, λ by GCV on a log grid) → group alignment → PPSO-tuned CSF + ripple + ESN,
+plus CSF + ripple (periodic errors a few calibration steps long) and baselines behind one
+interface, direction-aware (hysteresis) fitting, an honest held-out evaluation (leave one point
+out, leave one group out), and a versioned calibration record that says how close each component
+is to its noise floor.
 Pure: no I/O (procedures read and write the record's JSON text).
 
 Quick use::
@@ -28,11 +30,13 @@ from instrument.compensation._compensators import (
     GaussianProcessCompensator,
     NoCompensation,
     PolynomialCompensator,
+    RippleSplineCompensator,
     SmoothingSplineCompensator,
     aligned_points,
     curve_from_dict,
     default_compensators,
 )
+from instrument.compensation._csf_esn import SELECTIONS, decode, tune_csf_esn
 from instrument.compensation._data import (
     ANGULAR_COMPONENTS,
     ARCSEC,
@@ -47,15 +51,12 @@ from instrument.compensation._data import (
     point_means,
 )
 from instrument.compensation._esn import (
-    SELECTIONS,
     CsfEsnCurve,
     EsnHyperparameters,
     Reservoir,
-    decode,
     features,
     joint_fit,
     make_reservoir,
-    tune_csf_esn,
 )
 from instrument.compensation._evaluate import (
     LOGO,
@@ -67,6 +68,7 @@ from instrument.compensation._evaluate import (
     leave_one_group_out_residuals,
     leave_one_point_out_residuals,
 )
+from instrument.compensation._floor import FLOOR_RATIO_LIMITS, FloorRatio
 from instrument.compensation._ppso import (
     ParetoResult,
     generational_distance,
@@ -83,8 +85,10 @@ from instrument.compensation._record import (
     Provenance,
     calibrate,
 )
+from instrument.compensation._ripple import PERIOD_RANGE, RippleSearch, find_ripples, fit_ripple_spline
 from instrument.compensation._spline import SplineCurve, fit_spline_curve, reinsch_penalty
 from instrument.compensation._synthetic import (
+    HARD_PROFILES,
     Campaign,
     HeldOutSet,
     SyntheticScenario,
@@ -98,11 +102,14 @@ __all__ = [
     "ANGULAR_COMPONENTS",
     "ARCSEC",
     "COMPONENTS",
+    "FLOOR_RATIO_LIMITS",
     "FORMAT_VERSION",
+    "HARD_PROFILES",
     "LINEAR_COMPONENTS",
     "LOGO",
     "LOPO",
     "MICROMETRE",
+    "PERIOD_RANGE",
     "READABLE_VERSIONS",
     "SCHEMES",
     "SELECTIONS",
@@ -120,6 +127,7 @@ __all__ = [
     "EvaluationRow",
     "EvaluationTable",
     "FittedModel",
+    "FloorRatio",
     "GaussianProcessCompensator",
     "GaussianProcessCurve",
     "GroupAlignment",
@@ -132,6 +140,8 @@ __all__ = [
     "PoseCorrection",
     "Provenance",
     "Reservoir",
+    "RippleSearch",
+    "RippleSplineCompensator",
     "SmoothingSplineCompensator",
     "SplineCurve",
     "SyntheticScenario",
@@ -145,8 +155,10 @@ __all__ = [
     "display_unit",
     "evaluate",
     "features",
+    "find_ripples",
     "fit_gaussian_process",
     "fit_polynomial",
+    "fit_ripple_spline",
     "fit_spline_curve",
     "generational_distance",
     "hard_campaign",

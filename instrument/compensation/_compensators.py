@@ -39,9 +39,12 @@ from instrument.compensation._baselines import (
     fit_gaussian_process,
     fit_polynomial,
 )
+from instrument.compensation._csf_esn import SELECTIONS, tune_csf_esn
 from instrument.compensation._data import CalibrationData, check_direction, data_noise_floor, point_means
-from instrument.compensation._esn import SELECTIONS, CsfEsnCurve, tune_csf_esn
+from instrument.compensation._esn import CsfEsnCurve
 from instrument.compensation._legacy import LegacyEsnCurve, LegacySumCurve
+from instrument.compensation._memo import Memo, digest
+from instrument.compensation._ripple import MAX_RIPPLES, fit_ripple_spline
 from instrument.compensation._spline import SplineCurve, fit_spline_curve
 
 MIN_POINTS = 4
@@ -209,12 +212,22 @@ def aligned_points(data: CalibrationData, align: bool = True) -> AlignedPoints:
     -----
     The hysteresis comes from within-group differences only: a group's offset cancels there, so
     offsets and hysteresis cannot bias each other. A calibration whose groups each approach from
-    one direction only (but not all the same) cannot tell them apart and is refused.
+    one direction only (but not all the same) cannot tell them apart and is refused. The result is
+    computed once per data set and shared (``calibrate`` fits every method on the same folds).
     """
-    x, e, g, p = data.measured, data.error, data.group, data.point
     if data.n_points < MIN_POINTS:
         raise ValueError(f"{data.component}: need at least {MIN_POINTS} distinct calibration points, "
                          f"got {data.n_points}")
+    direction = np.zeros(0) if data.direction is None else data.direction
+    key = digest(data.measured, data.reference, data.group, data.point, direction, align)
+    return _ALIGNED.get(key, lambda: _aligned_points(data, align))
+
+
+_ALIGNED: Memo[AlignedPoints] = Memo()
+
+
+def _aligned_points(data: CalibrationData, align: bool) -> AlignedPoints:
+    x, e, g, p = data.measured, data.error, data.group, data.point
     hysteresis: SplineCurve | PolynomialCurve | None = None
     if data.direction is not None and data.bidirectional:
         hx, half, hw = _half_differences(x, e, g, p, data.direction)
@@ -307,6 +320,28 @@ class SmoothingSplineCompensator(Compensator):
         return c, {"lambda": c.lam, "effective_dof": c.effective_dof, "criterion": self.criterion}
 
 
+class RippleSplineCompensator(Compensator):
+    """CSF with end curvature plus ripples: sinusoids of 2.5–8 grid steps whose periods the
+    leave-one-point-out search finds and keeps only on evidence (``instrument.compensation._ripple``).
+
+    Parameters
+    ----------
+    max_ripples : at most this many (a fundamental and a harmonic by default)
+    name : defaults to "csf+ripple"
+    """
+
+    def __init__(self, max_ripples: int = MAX_RIPPLES, name: str = "csf+ripple"):
+        self.max_ripples, self.name = max_ripples, name
+
+    def _fit_curve(self, x: np.ndarray, y: np.ndarray, w: np.ndarray, noise_sigma: float | None
+                   ) -> tuple[Curve, dict]:
+        c = fit_ripple_spline(x, y, w, noise_variance=None if noise_sigma is None else noise_sigma**2,
+                              max_ripples=self.max_ripples)
+        step = float(np.median(np.diff(np.sort(x))))
+        return c, {"lambda": c.lam, "effective_dof": c.effective_dof,
+                   "ripple_periods_steps": (c.ripple_periods / step).tolist()}
+
+
 class PolynomialCompensator(Compensator):
     """Low-order polynomial; degree by leave-one-point-out error (or fixed)."""
 
@@ -339,26 +374,30 @@ class CsfPpsoEsnCompensator(Compensator):
     seed : seeds the reservoirs and the swarm (deterministic for a fixed seed)
     n_particles, n_iterations, archive_size : PPSO budget
     selection : how the Pareto front's member is chosen (``SELECTIONS``; default "one_se")
+    ripples : let the spline part carry the ripples the ripple search keeps (issue 25)
     name : defaults to "csf-ppso-esn"
     """
 
     def __init__(self, *, seed: int = 0, n_particles: int = 12, n_iterations: int = 15, archive_size: int = 30,
-                 selection: str = "one_se", name: str | None = None):
+                 selection: str = "one_se", ripples: bool = True, name: str | None = None):
         if selection not in SELECTIONS:
             raise ValueError(f"selection must be one of {SELECTIONS}, got {selection!r}")
         self.seed, self.n_particles, self.n_iterations = seed, n_particles, n_iterations
-        self.archive_size, self.selection = archive_size, selection
+        self.archive_size, self.selection, self.ripples = archive_size, selection, ripples
         self.name = name or "csf-ppso-esn"
 
     def _fit_curve(self, x: np.ndarray, y: np.ndarray, w: np.ndarray, noise_sigma: float | None
                    ) -> tuple[Curve, dict]:
         tuning = tune_csf_esn(x, y, w, seed=self.seed, n_particles=self.n_particles, n_iterations=self.n_iterations,
-                              archive_size=self.archive_size, selection=self.selection)
+                              archive_size=self.archive_size, selection=self.selection,
+                              noise_variance=None if noise_sigma is None else noise_sigma**2, ripples=self.ripples)
         curve = tuning.curve
         details = {
             "hyperparameters": curve.hyper.to_dict(),
             "selection": self.selection,
             "chosen": {"train_rms": tuning.train_rms, "heldout_rms": tuning.heldout_rms, "effective_dof": tuning.dof},
+            "ripple_periods_steps": (2 * np.pi / (curve.ripple_omegas * float(np.median(np.diff(curve.knots_u)))
+                                     )).tolist(),
             "pareto_front_si": (tuning.front.objectives * curve.y_scale).tolist(),
             "ppso_evaluations": int(tuning.front.n_evaluations),
         }
@@ -374,11 +413,12 @@ def default_compensators(*, seed: int = 0) -> dict[str, Compensator]:
 
     Returns
     -------
-    dict name → Compensator: "csf-ppso-esn", "csf", "polynomial", "gaussian_process", "none"
+    dict name → Compensator: "csf-ppso-esn", "csf", "csf+ripple", "polynomial", "gaussian_process", "none"
     """
     methods: list[Compensator] = [
         CsfPpsoEsnCompensator(seed=seed),
         SmoothingSplineCompensator(),
+        RippleSplineCompensator(),
         PolynomialCompensator(),
         GaussianProcessCompensator(),
         NoCompensation(),

@@ -1,13 +1,16 @@
-"""CSF-PPSO-ESN: smoothing spline plus echo state network, tuned by PPSO (paper §3.2–3.4).
+"""CSF + ESN: smoothing spline plus echo state network, one joint linear smoother (paper §3.3–3.4).
 
 The paper's step 4 lets the PPSO-tuned ESN improve "on the basis of" the CSF. Here both are one
 model, fitted jointly to the aligned point means (u = measured value scaled to [−1, 1], y = error
 scaled to unit spread, w = repeat counts):
 
-    y ≈ s(u) + c·u² + Φ(u)·b,   minimising Σ w (y − fit)² + λ·∫ s''² + μ·|b|²
+    y ≈ s(u) + c·u² + ripple(u) + Φ(u)·b,   minimising Σ w (y − fit)² + λ·∫ s''² + μ·|b|²
 
 - s is the natural cubic spline through its knot values (the CSF, eqs 18–23); c·u² is unpenalised,
   so the curvature at the ends is fitted instead of forced to zero (natural end conditions);
+- ripple(u) = Σ a_k sin ω_k u + b_k cos ω_k u, unpenalised, at the periods the ripple search keeps
+  (``instrument.compensation._ripple``; none on smooth data): a periodic error a few calibration
+  steps long that neither the spline nor the reservoir's smooth features follow between points;
 - Φ(u) are the ESN's features (eqs 30–32): a static map needs a constant input, so the leaky tanh
   reservoir (sparse, ``CONNECTIONS_PER_NEURON`` inputs per neuron, spectral radius ρ < 1) runs
   ``RESERVOIR_STEPS`` steps from rest with input [1, s_in·u]; its final state and u are the
@@ -16,38 +19,26 @@ scaled to unit spread, w = repeat counts):
 For fixed hyper-parameters the fit is a linear smoother, fitted = A·y, so the leave-one-point-out
 residuals are exact in closed form: r_i / (1 − A_ii) (removing a point's weight equals refitting
 without it: the natural spline through the other points is also the optimum with the knot kept).
-PPSO searches (size, ρ, leak, s_in, μ, λ) on f₁ = training RMS and f₂ = leave-one-point-out RMS
-over the interior points; both are RMS of the same quantity in the same unit, so the model is
-chosen in that unit (``SELECTIONS``; default: the one-standard-error rule over every model the
-swarm evaluated), never after normalising each objective to [0, 1].
+The PPSO search of the hyper-parameters is ``instrument.compensation._csf_esn``.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import lru_cache
 
 import numpy as np
 
-from instrument.compensation._ppso import ParetoResult, ppso_minimize
-from instrument.compensation._spline import PartialSpline, curvature_column, natural_spline_basis, smooth
+from instrument.compensation._spline import (
+    PartialSpline,
+    curvature_column,
+    natural_spline_basis,
+    ripple_columns,
+)
 
 RESERVOIR_STEPS = 25
 CONNECTIONS_PER_NEURON = 10
 
-#: How the model is chosen from what the swarm found:
-#: "one_se": Breiman's one-standard-error rule over every model the swarm evaluated: the one with the
-#:     fewest effective degrees of freedom (trace of the hat matrix) whose held-out RMS is within one
-#:     standard error of the lowest (the standard error from the scatter of that model's per-point
-#:     squared held-out residuals). On the (training, held-out) front itself the rule is void: a
-#:     smoother model has a higher training error, so it is dominated unless it also predicts better;
-#: "ideal_point": the front member nearest to (min f₁, min f₂) in the objectives' own unit;
-#: "min_heldout": the front member with the lowest held-out RMS;
-#: "knee": the paper-era knee (farthest from the chord after normalising both objectives to [0, 1]);
-#:     kept for comparison. Unsound in principle (normalising weighs a training RMS that barely
-#:     varies like a held-out RMS spanning decades); on the paper-era ESN alone it picked
-#:     over-fitted networks, on the joint model it happens to land near the others.
-SELECTIONS = ("one_se", "ideal_point", "min_heldout", "knee")
 
 
 @dataclass(frozen=True)
@@ -145,12 +136,14 @@ def features(reservoir: Reservoir, u: np.ndarray, hyper: EsnHyperparameters,
 
 @dataclass(frozen=True)
 class JointFit:
-    """The joint smoother for fixed hyper-parameters: hat matrix and the parameters for y."""
+    """The joint smoother for fixed hyper-parameters: hat matrix and the parameters for y (the
+    coefficients of the spline's unpenalised columns after the end curvature: the ripples')."""
 
     hat: np.ndarray
     spline_values: np.ndarray
     curvature: float
     weights: np.ndarray
+    ripple_coefficients: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def loo_residuals(self, y: np.ndarray) -> np.ndarray:
         """Exact leave-one-out residuals of every point."""
@@ -184,12 +177,13 @@ def joint_fit(spline: PartialSpline, y: np.ndarray, phi: np.ndarray, hyper: EsnH
         return JointFit(hat, np.zeros(n), 0.0, np.zeros(phi.shape[1]))
     weights = phi.T @ (q @ y)
     theta = spline_map @ (y - phi @ weights)
-    return JointFit(hat, theta[:n], float(theta[n]), weights)
+    return JointFit(hat, theta[:n], float(theta[n]), weights, theta[n + 1:])
 
 
 @dataclass(frozen=True)
 class CsfEsnCurve:
-    """A trained CSF-ESN curve: error = y_scale·(s(u) + c·u² + Φ(u)·b), u = (x − center)/half_span."""
+    """A trained CSF-ESN curve: error = y_scale·(s(u) + c·u² + ripple(u) + Φ(u)·b), u = (x − center)/half_span,
+    ripple(u) = Σ a_k sin ω_k u + b_k cos ω_k u (``ripple_coefficients`` = [a…, b…]; none in format-2 records)."""
 
     hyper: EsnHyperparameters
     reservoir: Reservoir
@@ -201,6 +195,8 @@ class CsfEsnCurve:
     curvature: float
     weights: np.ndarray
     seed: int
+    ripple_omegas: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    ripple_coefficients: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     kind = "csf-esn"
 
@@ -210,6 +206,8 @@ class CsfEsnCurve:
         lo, hi = float(self.knots_u[0]), float(self.knots_u[-1])
         fit = (natural_spline_basis(self.knots_u, u) @ self.spline_values
                + self.curvature * curvature_column(u, lo, hi) + features(self.reservoir, u, self.hyper) @ self.weights)
+        if self.ripple_omegas.size:
+            fit = fit + ripple_columns(u, self.ripple_omegas) @ self.ripple_coefficients
         return (fit * self.y_scale).reshape(x.shape)
 
     def to_dict(self) -> dict:
@@ -228,191 +226,19 @@ class CsfEsnCurve:
             "reservoir_cols": self.reservoir.cols.tolist(),
             "reservoir_values": self.reservoir.values.tolist(),
             "weights": self.weights.tolist(),
+            **({"ripple_omegas": self.ripple_omegas.tolist(), "ripple_coefficients": self.ripple_coefficients.tolist()}
+               if self.ripple_omegas.size else {}),
         }
 
     @classmethod
     def from_dict(cls, d: dict) -> CsfEsnCurve:
         reservoir = Reservoir(np.asarray(d["w_in"], float), np.asarray(d["reservoir_rows"], int),
                               np.asarray(d["reservoir_cols"], int), np.asarray(d["reservoir_values"], float))
+        omegas = np.asarray(d.get("ripple_omegas", []), float)
+        coefficients = np.asarray(d.get("ripple_coefficients", []), float)
+        if coefficients.size != 2 * omegas.size:
+            raise ValueError(f"a ripple needs 2 coefficients per frequency: {omegas.size} frequencies, "
+                             f"{coefficients.size} coefficients")
         return cls(EsnHyperparameters.from_dict(d["hyper"]), reservoir, float(d["center"]), float(d["half_span"]),
                    float(d["y_scale"]), np.asarray(d["knots_u"], float), np.asarray(d["spline_values"], float),
-                   float(d["curvature"]), np.asarray(d["weights"], float), int(d["seed"]))
-
-
-#: PPSO search box: reservoir size, spectral radius, leak rate, log10 input scaling, log10 ridge μ,
-#: log10 smoothing λ.
-SEARCH_LOWER = (10.0, 0.10, 0.05, -1.0, -8.0, -9.0)
-SEARCH_UPPER = (60.0, 0.99, 1.00, 1.0, 4.0, 3.0)
-
-
-def decode(v: np.ndarray) -> EsnHyperparameters:
-    """Hyper-parameters from a PPSO position."""
-    return EsnHyperparameters(int(round(v[0])), float(v[1]), float(v[2]), float(10 ** v[3]), float(10 ** v[4]),
-                              float(10 ** v[5]))
-
-
-@dataclass(frozen=True)
-class CsfEsnProblem:
-    """Scaled point means and the cached pieces every PPSO evaluation reuses."""
-
-    u: np.ndarray
-    y: np.ndarray
-    w: np.ndarray
-    spline: PartialSpline
-    seed: int
-    center: float
-    half_span: float
-    y_scale: float
-
-    @classmethod
-    def from_points(cls, x: np.ndarray, y: np.ndarray, w: np.ndarray, seed: int) -> CsfEsnProblem:
-        order = np.argsort(x)
-        x, y, w = (np.asarray(a, float)[order] for a in (x, y, w))
-        center, half_span = 0.5 * (x[0] + x[-1]), 0.5 * (x[-1] - x[0])
-        y_scale = float(np.std(y)) or 1.0
-        u = (x - center) / half_span
-        return cls(u, y / y_scale, w, PartialSpline(u, w), seed, float(center), float(half_span), y_scale)
-
-    def reservoir(self, size: int) -> Reservoir:
-        return make_reservoir(size, 0.5, self.seed)
-
-    def fit(self, hyper: EsnHyperparameters, reservoir: Reservoir | None = None,
-            unit_dense: np.ndarray | None = None, parameters: bool = True) -> JointFit:
-        """Joint fit for these hyper-parameters (``unit_dense``: the reservoir's dense weights at ρ = 1)."""
-        reservoir = reservoir or self.reservoir(hyper.reservoir_size)
-        unit = reservoir.dense() / 0.5 if unit_dense is None else unit_dense
-        phi = features(reservoir, self.u, hyper, w_dense=unit * hyper.spectral_radius)
-        return joint_fit(self.spline, self.y, phi, hyper, parameters)
-
-    def curve(self, hyper: EsnHyperparameters) -> CsfEsnCurve:
-        """The trained curve in SI units (the reservoir stored at its real spectral radius)."""
-        base = self.reservoir(hyper.reservoir_size)
-        fitted = self.fit(hyper, base)
-        reservoir = Reservoir(base.w_in, base.rows, base.cols, base.values / 0.5 * hyper.spectral_radius)
-        return CsfEsnCurve(hyper, reservoir, self.center, self.half_span, self.y_scale, self.u,
-                           fitted.spline_values, fitted.curvature, fitted.weights, self.seed)
-
-
-def _interior(n: int) -> np.ndarray:
-    mask = np.zeros(n, dtype=bool)
-    mask[1:-1] = True
-    return mask
-
-
-@dataclass(frozen=True)
-class SwarmLog:
-    """Every model the swarm evaluated.
-
-    Attributes
-    ----------
-    positions : (k, 6) PPSO positions (see ``decode``)
-    train, heldout : (k,) training and leave-one-point-out RMS (units of the error's spread)
-    dof : (k,) effective degrees of freedom (trace of the hat matrix)
-    squares : (k, m) squared leave-one-point-out residuals of the m interior points
-    """
-
-    positions: np.ndarray
-    train: np.ndarray
-    heldout: np.ndarray
-    dof: np.ndarray
-    squares: np.ndarray
-
-
-def select(front: ParetoResult, log: SwarmLog, selection: str) -> np.ndarray:
-    """Position of the chosen model (see ``SELECTIONS``).
-
-    Parameters
-    ----------
-    front : ParetoResult
-        f₁ = training RMS, f₂ = held-out RMS, in one unit.
-    log : SwarmLog of every evaluation (used by "one_se")
-    selection : str
-
-    Returns
-    -------
-    (6,) position
-    """
-    f = front.objectives
-    if selection == "knee":
-        return front.positions[front.knee_index()]
-    if selection == "min_heldout":
-        return front.positions[int(np.argmin(f[:, 1]))]
-    if selection == "ideal_point":
-        return front.positions[front.ideal_point_index()]
-    if selection == "one_se":
-        best = int(np.argmin(log.heldout))
-        squares = log.squares[best]
-        se = float(np.std(squares, ddof=1) / np.sqrt(squares.size)) / (2.0 * max(float(log.heldout[best]), 1e-300))
-        within = np.flatnonzero(log.heldout <= log.heldout[best] + se)
-        return log.positions[within[np.lexsort((log.heldout[within], log.dof[within]))[0]]]
-    raise ValueError(f"selection must be one of {SELECTIONS}, got {selection!r}")
-
-
-@dataclass(frozen=True)
-class Tuning:
-    """What ``tune_csf_esn`` found: the curve, the Pareto front, the log of every evaluation and the
-    chosen model's figures (training and held-out RMS in SI units, effective dof)."""
-
-    curve: CsfEsnCurve
-    front: ParetoResult
-    log: SwarmLog
-    train_rms: float
-    heldout_rms: float
-    dof: float
-
-
-def tune_csf_esn(x: np.ndarray, y: np.ndarray, w: np.ndarray, *, seed: int = 0, n_particles: int = 12,
-                 n_iterations: int = 15, archive_size: int = 30, selection: str = "one_se") -> Tuning:
-    """PPSO search of the CSF-ESN hyper-parameters on aligned point means, then the chosen fit.
-
-    Parameters
-    ----------
-    x, y, w : (n,) point means (measured value, error) and repeat counts; n ≥ 4
-    seed : seeds the reservoirs and the swarm
-    n_particles, n_iterations, archive_size : PPSO budget
-    selection : one of ``SELECTIONS``
-
-    Returns
-    -------
-    Tuning
-
-    Notes
-    -----
-    The swarm starts with one particle at the CSF alone (λ by GCV, ridge at its upper bound, so
-    the ESN is all but switched off): the search always holds a model as good as the CSF.
-    """
-    if selection not in SELECTIONS:
-        raise ValueError(f"selection must be one of {SELECTIONS}, got {selection!r}")
-    problem = CsfEsnProblem.from_points(x, y, w, seed)
-    interior = _interior(problem.u.size)
-    unit_reservoirs: dict[int, tuple[Reservoir, np.ndarray]] = {}
-    records: list[tuple[np.ndarray, float, float, float, np.ndarray]] = []
-
-    def objectives(v: np.ndarray) -> tuple[float, float]:
-        hyper = decode(v)
-        if hyper.reservoir_size not in unit_reservoirs:
-            r = problem.reservoir(hyper.reservoir_size)
-            unit_reservoirs[hyper.reservoir_size] = (r, r.dense() / 0.5)
-        r, unit = unit_reservoirs[hyper.reservoir_size]
-        fitted = problem.fit(hyper, r, unit, parameters=False)
-        squares = fitted.loo_residuals(problem.y)[interior] ** 2
-        train = problem.y - fitted.hat @ problem.y
-        train_rms = float(np.sqrt(np.sum(problem.w * train**2) / np.sum(problem.w)))
-        heldout_rms = float(np.sqrt(np.mean(squares)))
-        records.append((np.array(v, dtype=float), train_rms, heldout_rms, float(np.trace(fitted.hat)), squares))
-        return train_rms, heldout_rms
-
-    csf_lam = smooth(problem.u, problem.y, problem.w, "gcv", end_curvature=True).lam
-    log_lam = float(np.clip(np.log10(csf_lam), SEARCH_LOWER[5], SEARCH_UPPER[5]))
-    start = np.array([[30.0, 0.8, 0.5, 0.0, SEARCH_UPPER[4], log_lam]])
-    front = ppso_minimize(objectives, SEARCH_LOWER, SEARCH_UPPER, n_particles=n_particles, n_iterations=n_iterations,
-                          archive_size=archive_size, integer=(True, False, False, False, False, False), seed=seed,
-                          initial=start)
-    ok = [r for r in records if np.isfinite(r[1]) and np.isfinite(r[2])]
-    log = SwarmLog(np.array([r[0] for r in ok]), np.array([r[1] for r in ok]), np.array([r[2] for r in ok]),
-                   np.array([r[3] for r in ok]), np.array([r[4] for r in ok]))
-    position = select(front, log, selection)
-    hyper = decode(position)
-    at = int(np.flatnonzero(np.all(log.positions == position, axis=1))[0])
-    return Tuning(problem.curve(hyper), front, log, float(log.train[at] * problem.y_scale),
-                  float(log.heldout[at] * problem.y_scale), float(log.dof[at]))
+                   float(d["curvature"]), np.asarray(d["weights"], float), int(d["seed"]), omegas, coefficients)

@@ -60,8 +60,8 @@ def grid_density(f: np.ndarray, divisions: int) -> np.ndarray:
     lo, hi = f.min(axis=0), f.max(axis=0)
     span = np.where(hi > lo, hi - lo, 1.0)
     cells = np.minimum(((f - lo) / span * divisions).astype(int), divisions - 1)
-    _, inverse, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
-    return counts[inverse.ravel()]
+    cell = cells[:, 0] * divisions + cells[:, 1]  # one integer per cell of the 2-D grid
+    return np.bincount(cell, minlength=divisions * divisions)[cell]
 
 
 @dataclass(frozen=True)
@@ -122,7 +122,7 @@ def _update_archive(arch_pos, arch_obj, new_pos, new_obj, capacity, divisions, r
 
 
 def ppso_minimize(
-    objectives: Callable[[np.ndarray], Sequence[float]],
+    objectives: Callable[[np.ndarray], Sequence[float] | np.ndarray],
     lower: Sequence[float],
     upper: Sequence[float],
     *,
@@ -138,16 +138,19 @@ def ppso_minimize(
     epsilon: float = 1e-9,
     seed: int = 0,
     initial: np.ndarray | None = None,
+    vectorized: bool = False,
 ) -> ParetoResult:
     """Minimise two objectives with the Pareto PSO of the paper (eqs 24–29).
 
     Parameters
     ----------
-    objectives : callable(x (d,)) → (f1, f2)
+    objectives : callable(x (d,)) → (f1, f2); with ``vectorized``, callable(x (k, d)) → (k, 2) for
+        the whole swarm at once
     lower, upper : bounds of the decision vector
     integer : per-dimension flag; flagged dimensions are rounded before evaluation
     seed : all randomness comes from ``numpy.random.default_rng(seed)``
     initial : (k, d) positions that replace the first k random particles (a warm start)
+    vectorized : ``objectives`` scores every particle of an iteration in one call (same result)
 
     Returns
     -------
@@ -165,10 +168,14 @@ def ppso_minimize(
     def evaluate(x):
         nonlocal n_eval
         x = np.where(is_int, np.round(x), x)
-        out = np.empty((x.shape[0], 2))
-        for i, xi in enumerate(x):
-            out[i] = np.asarray(objectives(xi), dtype=float)[:2]
-            n_eval += 1
+        if vectorized:
+            out = np.asarray(objectives(x), dtype=float).reshape(x.shape[0], -1)[:, :2]
+            n_eval += x.shape[0]
+        else:
+            out = np.empty((x.shape[0], 2))
+            for i, xi in enumerate(x):
+                out[i] = np.asarray(objectives(xi), dtype=float)[:2]
+                n_eval += 1
         return np.where(np.isfinite(out), out, np.inf), x
 
     pos = low + rng.random((n_particles, d)) * span

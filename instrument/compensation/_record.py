@@ -32,11 +32,12 @@ from instrument.compensation._data import (
     check_direction,
 )
 from instrument.compensation._evaluate import EvaluationTable, evaluate
+from instrument.compensation._floor import FloorRatio, kept_model_floor_ratios
 from instrument.compensation._legacy import upgrade_v1_payload
 
 FORMAT_NAME = "opr-calibration-record"
-FORMAT_VERSION = 2
-READABLE_VERSIONS = (1, 2)
+FORMAT_VERSION = 3
+READABLE_VERSIONS = (1, 2, 3)
 PER_COMPONENT_BEST = "per-component best"
 
 
@@ -206,8 +207,11 @@ class CalibrationRecord:
     validity : mapping component → (lo, hi) measured-value range where corrections are trusted
     evaluation : EvaluationTable or None
     source_id : the content id stated in the JSON this record was loaded from (None when built
-        here); for a format-1 file it differs from ``content_id``, which hashes format 2
+        here); for an older format it differs from ``content_id``, which hashes the current one
     source_version : the format version of that JSON
+
+    ``floor_ratios`` (derived from the evaluation, for records of every version that hold one) says
+    per component how close the kept model's held-out RMS is to the noise floor.
     """
 
     method: str
@@ -254,6 +258,16 @@ class CalibrationRecord:
         """True when every modelled component was calibrated from both approach directions."""
         return bool(self.models) and all(len(m.directions) == 2 for m in self.models.values())
 
+    @property
+    def floor_ratios(self) -> dict[str, FloorRatio]:
+        """Component → how close the kept model's held-out RMS is to the noise floor (components
+        without an evaluation of their kept method are absent)."""
+        return kept_model_floor_ratios(self.models, self.evaluation)
+
+    def floor_messages(self) -> list[str]:
+        """One line per component whose kept model is not at the noise floor yet (empty when all are)."""
+        return [f.message() for f in self.floor_ratios.values() if not f.at_floor]
+
     # --- serialisation -------------------------------------------------------------------
     def _payload(self) -> dict:
         return _finite_json({
@@ -267,6 +281,8 @@ class CalibrationRecord:
             "validity": {c: list(v) for c, v in self.validity.items()},
             "models": {c: m.to_dict() for c, m in self.models.items()},
             "evaluation": None if self.evaluation is None else self.evaluation.to_dict(),
+            # derived from the evaluation, written for the reader of the file (``floor_ratios``)
+            "noise_floor": {c: f.to_dict() for c, f in self.floor_ratios.items()},
         })
 
     @property

@@ -19,7 +19,7 @@ Beyond the knots every curve here continues linearly.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
 from typing import TYPE_CHECKING
 
@@ -27,6 +27,12 @@ import numpy as np
 
 if TYPE_CHECKING:  # scipy's interpolation and optimisation load when a spline is fitted or evaluated
     from scipy.interpolate import CubicSpline
+
+
+def ripple_columns(u: np.ndarray, omegas: np.ndarray) -> np.ndarray:
+    """(n, 2k) columns sin(ω_1 u) … sin(ω_k u), cos(ω_1 u) … cos(ω_k u)."""
+    phase = np.asarray(u, dtype=float).ravel()[:, None] * np.asarray(omegas, dtype=float)[None, :]
+    return np.hstack([np.sin(phase), np.cos(phase)])
 
 
 def reinsch_penalty(u: np.ndarray) -> np.ndarray:
@@ -73,30 +79,49 @@ def curvature_column(u: np.ndarray, lo: float = -1.0, hi: float = 1.0) -> np.nda
 
 
 class PartialSpline:
-    """Smoother of min Σ w (y − s − c·t)² + λ sᵀ K s: natural-spline knot values s, free end-curvature
-    coefficient c of t = ``curvature_column(u)``, for any λ from one eigendecomposition.
+    """Smoother of min Σ w (y − s − X·β)² + λ sᵀ K s: natural-spline knot values s and free (unpenalised)
+    coefficients β of the columns X, for any λ from one eigendecomposition.
 
     Parameters
     ----------
     u : (n,) sorted distinct knots
     w : (n,) positive weights (normalised here to mean 1)
+    columns : (n, p) unpenalised columns; default the end-curvature term ``curvature_column(u)``
+        alone (p = 1). A ripple adds its sine and cosine (``instrument.compensation._ripple``).
     """
 
-    def __init__(self, u: np.ndarray, w: np.ndarray):
+    def __init__(self, u: np.ndarray, w: np.ndarray, columns: np.ndarray | None = None):
         self.w = np.asarray(w, dtype=float) / np.mean(w)
         sw = np.sqrt(self.w)
         d, vecs = np.linalg.eigh(reinsch_penalty(u) / np.outer(sw, sw))
         self.eigenvalues = np.clip(d, 0.0, None)
         self.left, self.right = vecs / sw[:, None], vecs.T * sw[None, :]  # W^-½ V and Vᵀ W^½
-        self.t = curvature_column(u)
+        self.columns = curvature_column(u)[:, None] if columns is None else np.asarray(columns, dtype=float)
+
+    def plain(self, lam: float) -> np.ndarray:
+        """Hat matrix of the natural smoothing spline alone (no unpenalised columns)."""
+        return (self.left * (1.0 / (1.0 + lam * self.eigenvalues))) @ self.right
+
+    def smoothers(self, lams: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Hat matrices (L, n, n) for every λ of ``lams`` (fitted = hat @ y) and the (L, n + p, n) maps
+        from y to [s; β]."""
+        shrink = 1.0 / (1.0 + np.asarray(lams, dtype=float)[:, None] * self.eigenvalues[None, :])
+        plain = (self.left[None] * shrink[:, None, :]) @ self.right
+        x = self.columns
+        plain_x = plain @ x
+        m_x = self.w[:, None] * (x[None] - plain_x)  # M X with M = W (I − S), symmetric
+        gram = np.swapaxes(m_x, -1, -2) @ x
+        if x.shape[1] == 1:  # the end curvature alone (λ → 0 makes it vanish: keep it finite)
+            coefficient_map = np.swapaxes(m_x, -1, -2) / np.maximum(gram, 1e-300)
+        else:
+            coefficient_map = np.linalg.pinv(gram, hermitian=True) @ np.swapaxes(m_x, -1, -2)
+        s_map = plain - plain_x @ coefficient_map
+        return s_map + x @ coefficient_map, np.concatenate([s_map, coefficient_map], axis=1)
 
     def smoother(self, lam: float) -> tuple[np.ndarray, np.ndarray]:
-        """Hat matrix (fitted = hat @ y) and the (n + 1, n) map from y to [s; c]."""
-        plain = (self.left * (1.0 / (1.0 + lam * self.eigenvalues))) @ self.right
-        m_t = self.w * (self.t - plain @ self.t)  # M t with M = W (I − S), symmetric
-        c_row = m_t / max(float(self.t @ m_t), 1e-300)
-        s_map = plain - np.outer(plain @ self.t, c_row)
-        return s_map + np.outer(self.t, c_row), np.vstack([s_map, c_row])
+        """Hat matrix (fitted = hat @ y) and the (n + p, n) map from y to [s; β]."""
+        hats, maps = self.smoothers(np.array([lam]))
+        return hats[0], maps[0]
 
 
 @dataclass(frozen=True)
@@ -185,9 +210,11 @@ def smooth(u: np.ndarray, y: np.ndarray, w: np.ndarray, criterion: str = "gcv", 
 
 @dataclass(frozen=True)
 class SplineCurve:
-    """Polynomial trend plus natural cubic spline through the smoothed values (plus c·u²).
+    """Polynomial trend plus natural cubic spline through the smoothed values (plus c·u², plus ripples).
 
-    Beyond the knots the curve continues linearly.
+    Beyond the knots the trend, spline and u² term continue linearly; a ripple (a_k sin ω_k u +
+    b_k cos ω_k u, ``ripple_omegas`` and ``ripple_coefficients`` = [a_1 … a_k, b_1 … b_k]) goes on
+    as it is, as periodic errors do.
     """
 
     center: float
@@ -198,8 +225,15 @@ class SplineCurve:
     lam: float
     effective_dof: float
     curvature: float = 0.0
+    ripple_omegas: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    ripple_coefficients: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     kind = "smoothing_spline"
+
+    @property
+    def ripple_periods(self) -> np.ndarray:
+        """Periods of the ripples in the measured unit (m or rad)."""
+        return 2.0 * np.pi * self.half_span / self.ripple_omegas
 
     def _u(self, x: np.ndarray) -> np.ndarray:
         return (np.asarray(x, dtype=float) - self.center) / self.half_span
@@ -216,7 +250,8 @@ class SplineCurve:
         inside = np.clip(u, lo, hi)
         trend = np.polyval(self.trend, inside) + np.polyval(np.polyder(self.trend), inside) * (u - inside)
         spline = self._spline(inside) + self._spline(inside, 1) * (u - inside)
-        return (trend + spline + self.curvature * curvature_column(u, lo, hi)).reshape(x.shape)
+        ripple = ripple_columns(u, self.ripple_omegas) @ self.ripple_coefficients if self.ripple_omegas.size else 0.0
+        return (trend + spline + self.curvature * curvature_column(u, lo, hi) + ripple).reshape(x.shape)
 
     def to_dict(self) -> dict:
         return {
@@ -229,13 +264,44 @@ class SplineCurve:
             "lam": self.lam,
             "effective_dof": self.effective_dof,
             "curvature": self.curvature,
+            # only when present, so a curve without ripple is written as before (format 2)
+            **({"ripple_omegas": self.ripple_omegas.tolist(), "ripple_coefficients": self.ripple_coefficients.tolist()}
+               if self.ripple_omegas.size else {}),
         }
 
     @classmethod
     def from_dict(cls, d: dict) -> SplineCurve:
+        omegas = np.asarray(d.get("ripple_omegas", []), dtype=float)
+        coefficients = np.asarray(d.get("ripple_coefficients", []), dtype=float)
+        if coefficients.size != 2 * omegas.size:
+            raise ValueError(f"a ripple needs 2 coefficients per frequency: {omegas.size} frequencies, "
+                             f"{coefficients.size} coefficients")
         return cls(float(d["center"]), float(d["half_span"]), np.asarray(d["trend"], dtype=float),
                    np.asarray(d["knots_u"], dtype=float), np.asarray(d["values"], dtype=float), float(d["lam"]),
-                   float(d["effective_dof"]), float(d.get("curvature", 0.0)))
+                   float(d["effective_dof"]), float(d.get("curvature", 0.0)), omegas, coefficients)
+
+
+def scaled_points(x: np.ndarray, y: np.ndarray, w: np.ndarray | None = None
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float, float]:
+    """Point means sorted by x, with x scaled to u ∈ [−1, 1] as every curve here stores it.
+
+    Returns
+    -------
+    u, y, w, center, half_span : sorted arrays (w default equal) and u = (x − center) / half_span
+
+    Raises
+    ------
+    ValueError
+        The points span no range.
+    """
+    x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
+    w = np.ones_like(x) if w is None else np.asarray(w, dtype=float)
+    order = np.argsort(x)
+    x, y, w = x[order], y[order], w[order]
+    center, half_span = 0.5 * (x[0] + x[-1]), 0.5 * (x[-1] - x[0])
+    if not half_span > 0:
+        raise ValueError("the calibration points must span a non-zero range")
+    return (x - center) / half_span, y, w, float(center), float(half_span)
 
 
 def fit_spline_curve(x: np.ndarray, y: np.ndarray, w: np.ndarray | None = None, *, criterion: str = "gcv",
@@ -255,15 +321,7 @@ def fit_spline_curve(x: np.ndarray, y: np.ndarray, w: np.ndarray | None = None, 
     -------
     SplineCurve
     """
-    x = np.asarray(x, dtype=float)
-    y = np.asarray(y, dtype=float)
-    w = np.ones_like(x) if w is None else np.asarray(w, dtype=float)
-    order = np.argsort(x)
-    x, y, w = x[order], y[order], w[order]
-    center, half_span = 0.5 * (x[0] + x[-1]), 0.5 * (x[-1] - x[0])
-    if not half_span > 0:
-        raise ValueError("the calibration points must span a non-zero range")
-    u = (x - center) / half_span
+    u, y, w, center, half_span = scaled_points(x, y, w)
     trend = np.zeros(1)
     if trend_degree > 0:
         trend = np.polyfit(u, y, trend_degree, w=np.sqrt(w))

@@ -7,11 +7,15 @@ hysteresis the error also depends on the approach direction d = ±1: error + d·
 the full difference between approaching from below and from above.
 
 ``hard_campaign`` adds what makes compensation hard and scores it against an oracle: ripples whose
-period is a non-integer number of grid steps (3.4–6 steps, near what 15 points can resolve), curvature
-at both ends (exponential bends decaying over 1.3–3 steps, which natural spline end conditions
-cannot follow), group offsets of tens of µm, optional hysteresis, and two held-out sets the
-calibration never saw: off-grid points in the calibration's own sessions, and a new session from a
-start pose outside the calibration (an offset beyond every calibration group's).
+period is a non-integer number of grid steps (3.4–6 steps), curvature at both ends (exponential
+bends decaying over 1.3–3 steps, which natural spline end conditions cannot follow), group offsets
+of tens of µm, optional hysteresis, and two held-out sets the calibration never saw: off-grid
+points in the calibration's own sessions, and a new session from start poses outside the
+calibration (offsets beyond every calibration group's). Its other profiles (``HARD_PROFILES``)
+bring the fast ripple down to 3.0 steps — encoder eccentricity harmonics, gear ripple — alone,
+beside the slower terms, or as a fundamental with its second harmonic. The grid's Nyquist limit
+is a period of 2 steps: 3 steps is resolvable from the grid alone, but only by a model that can
+hold a sinusoid between its points.
 """
 
 from __future__ import annotations
@@ -175,6 +179,19 @@ HARD_AMPLITUDES = {"linear": (55.0, 18.0, 8.0, 5.0, 1.5, 9.0), "angular": (30.0,
 HARD_GROUP_OFFSETS = {"linear": (10.0, 40.0), "angular": (5.0, 20.0)}  # µm, ″
 HARD_HYSTERESIS = {"linear": (2.0, 4.0), "angular": (0.7, 1.3)}  # full difference, µm, ″
 
+#: Shapes of the hard error curve (``hard_campaign(profile=...)``); the fast ripple's period in grid steps:
+#: "hard": every term, the fast ripple's period 3.4–6 steps (never within 0.15 of an integer);
+#: "short-ripple": every term, the fast ripple's period 3.0–3.4 steps (encoder or gear ripple a
+#:     few calibration steps long, beside the slower terms);
+#: "ripple-alone": the scale error and the fast ripple only (period 3.0–6.0 steps);
+#: "harmonics": every term, the fast ripple replaced by an eccentricity-like pair: a fundamental of
+#:     6.0–6.8 steps and its second harmonic (3.0–3.4 steps), 0.5–1× the fundamental's amplitude.
+HARD_PROFILES = ("hard", "short-ripple", "ripple-alone", "harmonics")
+_FAST_PERIODS = {"short-ripple": (3.0, 3.4), "ripple-alone": (3.0, 6.0), "harmonics": (3.0, 3.4)}
+#: The other profiles' fast ripple: up to 5 µm / 4″ (drawn 0.6–1×), 8–12× an observation's noise, as
+#: encoder eccentricity and gear ripple of a robot axis can be.
+SHORT_RIPPLE_AMPLITUDES = {"linear": 5.0, "angular": 4.0}
+
 
 def _non_integer(rng: np.random.Generator, lo: float, hi: float) -> float:
     """A number in [lo, hi] at least 0.15 away from every integer."""
@@ -184,7 +201,11 @@ def _non_integer(rng: np.random.Generator, lo: float, hi: float) -> float:
             return float(value)
 
 
-def _hard_error(rng: np.random.Generator, nominal: np.ndarray, unit: float, angular: bool) -> ErrorFunction:
+def _hard_error(rng: np.random.Generator, nominal: np.ndarray, unit: float, angular: bool, profile: str = "hard",
+                ripple_period: float | None = None, extra: np.random.Generator | None = None) -> ErrorFunction:
+    """The hard error curve. ``rng`` draws exactly what the "hard" profile needs (so every profile's
+    campaign shares the hard one's noise and offsets); what another profile changes comes from
+    ``extra``. ``ripple_period`` (grid steps) fixes the fastest ripple's period."""
     lo, hi = float(nominal[0]), float(nominal[-1])
     step, mid, half = float(nominal[1] - nominal[0]), 0.5 * (lo + hi), 0.5 * (hi - lo)
     amplitudes = HARD_AMPLITUDES["angular" if angular else "linear"]
@@ -195,12 +216,24 @@ def _hard_error(rng: np.random.Generator, nominal: np.ndarray, unit: float, angu
     r2, p2, ph2 = rng.uniform(0.6, 1.0) * slow, _non_integer(rng, 8.0, 14.0) * step, rng.uniform(0, 2 * np.pi)
     b0, l0 = sign() * rng.uniform(0.5, 1.0) * bend, rng.uniform(1.3, 3.0) * step
     b1, l1 = sign() * rng.uniform(0.5, 1.0) * bend, rng.uniform(1.3, 3.0) * step
+    r3, p3, ph3 = 0.0, 1.0, 0.0  # the harmonics profile's fundamental
+    if profile != "hard" or ripple_period is not None:
+        extra = extra if extra is not None else rng
+        fast = ripple_period if ripple_period is not None else extra.uniform(*_FAST_PERIODS.get(profile, (3.4, 6.0)))
+        p1 = fast * step
+        r1 *= SHORT_RIPPLE_AMPLITUDES["angular" if angular else "linear"] / amplitudes[3]
+        if profile == "ripple-alone":
+            a2 = a3 = r2 = b0 = b1 = 0.0
+        if profile == "harmonics":
+            r3, p3, ph3 = r1, 2.0 * p1, extra.uniform(0, 2 * np.pi)
+            r1 = extra.uniform(0.5, 1.0) * r3
 
     def error(v: np.ndarray) -> np.ndarray:
         v = np.asarray(v, dtype=float)
         u = (v - mid) / half
         return (a1 * u + a2 * (u**2 - 1.0 / 3.0) + a3 * (u**3 - 0.6 * u)
                 + r1 * np.sin(2 * np.pi * (v - lo) / p1 + ph1) + r2 * np.sin(2 * np.pi * (v - lo) / p2 + ph2)
+                + r3 * np.sin(2 * np.pi * (v - lo) / p3 + ph3)
                 + b0 * np.exp(-(v - lo) / l0) + b1 * np.exp(-(hi - v) / l1))
 
     return error
@@ -219,7 +252,7 @@ class HeldOutSet:
         the session's mean residual removed).
     measured, reference : (m,) arrays
     group : (m,) int array
-        Calibration group of each observation (-1 for the new session).
+        Calibration group of each observation (−1, −2, … for the new session's start poses).
     direction : (m,) array of ±1, or None
     oracle_error : (m,) array
         The error an oracle that knows the true curve, offsets and hysteresis predicts from the
@@ -266,8 +299,9 @@ class Campaign:
 
 
 def hard_campaign(seed: int, component: str, *, hysteresis: bool = False, bidirectional: bool | None = None,
-                  n_points: int = 15, repeats: int = 3, n_groups: int = 3, n_off_grid: int = 20,
-                  n_new_session: int = 45) -> Campaign:
+                  profile: str = "hard", ripple_period: float | None = None, n_points: int = 15, repeats: int = 3,
+                  n_groups: int = 3, n_off_grid: int = 20, n_new_session: int = 45, n_new_groups: int = 1
+                  ) -> Campaign:
     """A calibration campaign harder than the paper-like one, with held-out data and an oracle.
 
     Parameters
@@ -282,23 +316,34 @@ def hard_campaign(seed: int, component: str, *, hysteresis: bool = False, bidire
         Calibrate from both directions (``repeats`` approaches from each); default: when
         ``hysteresis``. A one-directional calibration of a hysteretic component approaches from
         +1 only and records it; one without hysteresis records no direction.
+    profile : str
+        Shape of the error curve, one of ``HARD_PROFILES``. Every profile of one (seed, component)
+        shares the "hard" campaign's noise, offsets and held-out positions; only the curve differs.
+    ripple_period : float, optional
+        The fastest ripple's period in grid steps (default: drawn from the profile's range).
     n_points, repeats, n_groups : int
         The paper's 15 × 3 × 3 by default.
     n_off_grid : int
         Held-out off-grid observations per calibration group.
     n_new_session : int
-        Observations of the new session.
+        Observations of the new session, split evenly between its groups.
+    n_new_groups : int
+        Start poses of the new session, each with its own offset beyond every calibration
+        group's (labelled −1, −2, …; each scored with its own mean residual removed).
 
     Returns
     -------
     Campaign
     """
     check_component(component)
+    if profile not in HARD_PROFILES:
+        raise ValueError(f"profile must be one of {HARD_PROFILES}, got {profile!r}")
     rng = np.random.default_rng([seed, COMPONENTS.index(component), 9283])
+    extra = np.random.default_rng([seed, COMPONENTS.index(component), 9283, HARD_PROFILES.index(profile)])
     angular = component not in LINEAR_COMPONENTS
     nominal, unit, meas_noise, ref_noise, jitter = _design(component, n_points)
     lo, hi, step = float(nominal[0]), float(nominal[-1]), float(nominal[1] - nominal[0])
-    curve = _hard_error(rng, nominal, unit, angular)
+    curve = _hard_error(rng, nominal, unit, angular, profile, ripple_period, extra)
     kind = "angular" if angular else "linear"
     h0 = rng.uniform(*HARD_HYSTERESIS[kind]) * unit if hysteresis else 0.0
     h1 = rng.uniform(-0.3, 0.3) * h0
@@ -335,8 +380,15 @@ def hard_campaign(seed: int, component: str, *, hysteresis: bool = False, bidire
     group = np.repeat(np.arange(n_groups), n_off_grid)
     off_grid = observe("off-grid", rng.uniform(*inner, group.size), group, offsets[group])
     session_offset = rng.choice([-1.0, 1.0]) * rng.uniform(offset_hi, 1.5 * offset_hi) * unit
-    new_session = observe("new-session", rng.uniform(*inner, n_new_session), np.full(n_new_session, -1),
-                          np.full(n_new_session, session_offset))
+    per_group = n_new_session // max(n_new_groups, 1)
+    positions, labels, session_offsets = [rng.uniform(*inner, per_group)], [np.full(per_group, -1)], [session_offset]
+    for k in range(2, n_new_groups + 1):  # drawn after the first, so one new group leaves the stream unchanged
+        positions.append(rng.uniform(*inner, per_group))
+        labels.append(np.full(per_group, -k))
+        session_offsets.append(rng.choice([-1.0, 1.0]) * rng.uniform(offset_hi, 1.5 * offset_hi) * unit)
+    new_labels = np.concatenate(labels)
+    new_session = observe("new-session", np.concatenate(positions), new_labels,
+                          np.repeat(np.array(session_offsets), per_group))
     return Campaign(calibration, (off_grid, new_session), true_error, offsets, float(np.hypot(meas_noise, ref_noise)),
                     hysteresis)
 
@@ -351,8 +403,8 @@ def held_out_residuals(model: ErrorModel, held: HeldOutSet) -> tuple[np.ndarray,
     """Residuals of a fitted model and of the oracle on a held-out set (SI).
 
     Off-grid observations are predicted in their calibration group's frame (the model's own
-    offset for that group); for the new session both residuals have their mean removed, since
-    neither the model nor the oracle can know a new start pose's offset.
+    offset for that group); for the new session both residuals have each start pose's mean
+    removed, since neither the model nor the oracle can know a new start pose's offset.
 
     Parameters
     ----------
@@ -368,5 +420,8 @@ def held_out_residuals(model: ErrorModel, held: HeldOutSet) -> tuple[np.ndarray,
         predicted = predicted - np.array([model.group_offset(int(g)) for g in held.group])
     residual, oracle = held.error - predicted, held.error - held.oracle_error
     if not held.offset_known:
-        residual, oracle = residual - residual.mean(), oracle - oracle.mean()
+        for g in np.unique(held.group):
+            at = held.group == g
+            residual[at] -= residual[at].mean()
+            oracle[at] -= oracle[at].mean()
     return residual, oracle
