@@ -18,6 +18,10 @@ from procedures.station import InstrumentScience
 from procedures.store import RunState, RunStore
 from tests._serve_helpers import instrument_serve
 
+# asyncua's client probes the server every watchdog interval and gives up on the connection when one
+# probe takes longer than that (1 s by default): a loaded host's server may take longer to answer.
+WATCHDOG_S = 10.0
+
 pytestmark = [pytest.mark.timeout(300), pytest.mark.integration]
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "opcua.md"
@@ -62,7 +66,7 @@ def test_every_documented_node_is_in_the_servers_address_space(tmp_path):
     async def read_all(url: str) -> tuple[dict[str, str], list[str]]:
         problems: dict[str, str] = {}
         declared: list[str] = []
-        async with Client(url, timeout=30) as client:
+        async with Client(url, timeout=30, watchdog_intervall=WATCHDOG_S) as client:
             index = await client.get_namespace_index(NAMESPACE)
 
             async def read(path: str):

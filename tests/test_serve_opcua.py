@@ -17,6 +17,10 @@ from asyncua.ua.uaerrors import BadInvalidState
 from procedures.serve import NAMESPACE
 from tests._serve_helpers import instrument_serve, short_iso
 
+# asyncua's client probes the server every watchdog interval and gives up on the connection when one
+# probe takes longer than that (1 s by default): a loaded host's server may take longer to answer.
+WATCHDOG_S = 10.0
+
 pytestmark = [pytest.mark.timeout(300), pytest.mark.slow]
 
 
@@ -48,9 +52,12 @@ class Cell:
     def datachange_notification(self, node, value, data) -> None:  # asyncua's subscription handler
         self.changes.setdefault(node.nodeid.Identifier, []).append(value)
 
+    def status_change_notification(self, status) -> None:  # asyncua's handler, for a subscription's status
+        self.changes.setdefault("status", []).append(status)
+
 
 async def _connected(url: str, body) -> None:
-    async with Client(url, timeout=30) as client:
+    async with Client(url, timeout=30, watchdog_intervall=WATCHDOG_S) as client:
         cell = Cell(client, await client.get_namespace_index(NAMESPACE))
         await body(cell)
 
