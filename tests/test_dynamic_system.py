@@ -65,9 +65,11 @@ def test_stabilisation_against_the_twins_truth(cell, tmp_path):
     results = run["results"]
     assert results["simulated"] and len(results["moves"]) == 2
     period = 1.0 / RATE
-    # A real ring-down: the 5 kg arrival at 1 m/s overshoots by µm and takes time to enter 10 µm (the
-    # twin's residual depends on the arrival's phase: a cycle may ring much less than another).
-    assert any(m["true"]["overshoot"] > 3e-6 and m["true"]["stabilisation_time"] > period for m in results["moves"])
+    # A real ring-down: the 5 kg arrival at 1 m/s overshoots by µm and takes time to enter 10 µm. Judged on
+    # the dense (1 kHz) truth: at the stream's 150 Hz instants, which fall wherever the host's timing puts
+    # them, one arrival may show little of its peak, and two arrivals in a row may both.
+    assert any(m["true"]["dense"]["overshoot"] > 3e-6 and m["true"]["dense"]["stabilisation_time"] > period
+               for m in results["moves"])
     for move in results["moves"]:
         true = move["true"]
         print(f"{move['key']}: t_s {_ms(move['stabilisation_time'])} ms (true {_ms(true['stabilisation_time'])}, "
