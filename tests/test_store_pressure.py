@@ -243,6 +243,11 @@ def test_a_damaged_store_is_one_line_with_the_way_to_recover_it_for_every_comman
         assert ".recover" in err and "move the damaged file aside" in err
     with pytest.raises(StoreDamaged):
         RunStore(runs)
+    # The real command, in its own process: the same line, exit status 1, nothing else.
+    process = subprocess.run([sys.executable, "-m", "procedures.cli", "runs", "--runs-dir", str(runs)],
+                             capture_output=True, text=True, timeout=60)
+    assert process.returncode == 1 and process.stdout == ""
+    assert process.stderr.startswith(f"store damaged: {path}") and len(process.stderr.splitlines()) == 1
 
 
 # ---------------------------------------------------------------------------------------- read-only

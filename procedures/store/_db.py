@@ -389,6 +389,14 @@ class SqliteDatabase:
             if self.rows("SELECT name FROM sqlite_master WHERE type = 'table' AND name = 'store_reserve'") and \
                     self.rows("SELECT id FROM store_reserve LIMIT 1"):
                 return
+            self._db.execute("PRAGMA busy_timeout = 0")  # another process's lock: no reserve now, and no wait
+            try:
+                self._fill_reserve()
+            finally:
+                self._db.execute(f"PRAGMA busy_timeout = {int(self.timeout * 1000)}")
+
+    def _fill_reserve(self) -> None:
+        with contextlib.suppress(StoreError):
             with self.transaction():
                 self.execute("CREATE TABLE IF NOT EXISTS store_reserve (id INTEGER PRIMARY KEY, room BLOB NOT NULL)")
                 self.execute("INSERT OR REPLACE INTO store_reserve (id, room) VALUES (1, zeroblob(?))",
