@@ -157,6 +157,52 @@ def test_the_cli_ends_a_run_on_a_full_disk_paused_with_exit_status_3(cell_setup,
     assert f"run {engine.run_id}: PAUSED after" in out and "store: disk full at" in out
 
 
+@pytest.fixture
+def tiny_disk(tmp_path):
+    """A real 16 MB tmpfs (needs root and a kernel that lets it mount), unmounted at the end."""
+    mount_point = tmp_path / "disk"
+    mount_point.mkdir()
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=16m", "tmpfs", str(mount_point)],
+                             capture_output=True, text=True) if shutil.which("mount") else None
+    if mounted is None or mounted.returncode != 0:
+        pytest.skip("a tmpfs cannot be mounted here (not root, or not allowed): the page-limit tests cover it")
+    yield mount_point
+    subprocess.run(["umount", "-l", str(mount_point)], capture_output=True)
+
+
+def test_a_really_full_disk_mid_run_pauses_it_and_the_resume_finishes(cell_setup, tiny_disk):
+    tmp_path, station, cell = cell_setup
+    filler = tiny_disk / "filler"
+    before: dict[int, tuple] = {}
+
+    def fill_the_disk(event):  # another program takes every byte that is left
+        if event["event"] == "progress" and event["done"] == 3 and not filler.exists():
+            before.update(_stored(engine.store, engine.run_id))
+            with open(filler, "wb") as handle:
+                try:
+                    while True:
+                        handle.write(bytes(64 * 1024))
+                        handle.flush()
+                except OSError:
+                    pass
+
+    stops_before = cell.robot.stops
+    with open_engine(tiny_disk / "runs", procedure=_procedure(tmp_path, cycles=2), station=station,
+                     science=FakeScience(cell), devices=cell.devices(), operator=cell.operator,
+                     listener=fill_the_disk) as engine:
+        assert engine.execute() == RunState.PAUSED
+        run = engine.store.get_run(engine.run_id)
+        assert {k: v for k, v in _stored(engine.store, engine.run_id).items() if k in before} == before
+    assert cell.robot.stops > stops_before
+    assert run["reason"].startswith(f"store: disk full at {tiny_disk / 'runs' / 'runs.sqlite'} ("), run["reason"]
+    assert f"free space, then: instrument resume {run['id']}" in run["reason"]
+    filler.unlink()
+    with open_engine(tiny_disk / "runs", run_id=run["id"], station=station, science=FakeScience(cell),
+                     devices=cell.devices(), operator=cell.operator) as engine:
+        assert engine.execute() == RunState.FINISHED
+        assert len(engine.store.samples(run["id"])) == run["total_steps"]
+
+
 # ------------------------------------------------------------------------------------------- locked
 def test_a_store_locked_mid_run_pauses_once_the_lock_is_gone_naming_the_holder(cell_setup, lock_holder):
     tmp_path, station, cell = cell_setup

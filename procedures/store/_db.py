@@ -228,6 +228,9 @@ _WAL_WRITE_LOCK = 120  # the byte of the -shm file a WAL writer locks (SQLite's 
 RESERVE_BYTES = 128 * 1024
 """The room a SQLite store keeps in reserve (one row of ``store_reserve``, a table outside the versioned schema):
 given back when the disk or the file is full, so that a run can still record its pause and reason."""
+DISK_RESERVE_BYTES = 1024 * 1024
+"""The same on the disk: the file ``runs.sqlite-reserve`` beside the store, deleted when the disk is full (room
+for the WAL to take the pause), written again the next time the store is opened."""
 
 
 def _free_mb(path: Path) -> str:
@@ -382,9 +385,22 @@ class SqliteDatabase:
                     self._db.execute("ROLLBACK")
             raise
 
+    @property
+    def disk_reserve(self) -> Path:
+        return self.path.with_name(self.path.name + "-reserve")
+
     def keep_reserve(self) -> None:
         if self.read_only:
             return
+        if not self.disk_reserve.exists():
+            try:
+                with open(self.disk_reserve, "wb") as handle:
+                    handle.write(bytes(DISK_RESERVE_BYTES))
+                    handle.flush()
+                    os.fsync(handle.fileno())
+            except OSError:  # no room for it now: none (a short one would only mislead)
+                with contextlib.suppress(OSError):
+                    self.disk_reserve.unlink()
         with contextlib.suppress(StoreError):
             if self.rows("SELECT name FROM sqlite_master WHERE type = 'table' AND name = 'store_reserve'") and \
                     self.rows("SELECT id FROM store_reserve LIMIT 1"):
@@ -403,10 +419,16 @@ class SqliteDatabase:
                              (RESERVE_BYTES,))
 
     def release_reserve(self) -> bool:
+        released = False
+        try:  # the disk's first: the WAL needs it to take even the delete
+            self.disk_reserve.unlink()
+            released = True
+        except OSError:
+            pass
         try:
-            return self.execute("DELETE FROM store_reserve") > 0
+            return self.execute("DELETE FROM store_reserve") > 0 or released
         except StoreError:
-            return False
+            return released
 
     def version(self) -> int:
         """Changes exactly when another connection commits (``PRAGMA data_version``)."""
