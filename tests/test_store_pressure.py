@@ -20,7 +20,8 @@ import pytest
 
 from procedures.cli import main
 from procedures.engine import open_engine
-from procedures.store import RunState, RunStore, StoreDamaged, StoreLocked, StoreTrouble
+from procedures.station import RunError
+from procedures.store import RunState, RunStore
 from tests.fakes import FakeCell, FakeScience, write_station
 
 SERIAL = "20235500123"  # the fake robot's
@@ -234,7 +235,7 @@ def test_a_lock_that_outlasts_the_pause_says_so_in_one_line(cell_setup, lock_hol
 
     stops_before = cell.robot.stops
     with _engine(tmp_path, station, cell, _procedure(tmp_path, cycles=2), listener=lock) as engine:
-        with pytest.raises(StoreTrouble) as caught:
+        with pytest.raises(RunError) as caught:  # procedures.store.StoreTrouble
             engine.execute()
     message = str(caught.value)
     assert "\n" not in message and f"pid {holder[0].pid}" in message and "could not be marked PAUSED" in message
@@ -249,7 +250,7 @@ def test_a_locked_store_before_the_start_is_one_line_and_reading_still_works(cel
         assert engine.execute() == RunState.PAUSED
         run_id = engine.run_id
     holder = lock_holder(runs / "runs.sqlite", 60)
-    with pytest.raises(StoreLocked, match=f"pid {holder.pid}"):
+    with pytest.raises(RunError, match=f"^store locked by another process \\(pid {holder.pid}\\)"):
         with _engine(tmp_path, station, cell, _procedure(tmp_path, cycles=2)):
             pass
     assert main(["resume", run_id, "--runs-dir", str(runs)]) == 1
@@ -287,7 +288,7 @@ def test_a_damaged_store_is_one_line_with_the_way_to_recover_it_for_every_comman
         _, err = _one_line(capsys)
         assert err.startswith(f"store damaged: {path}"), (command, err)
         assert ".recover" in err and "move the damaged file aside" in err
-    with pytest.raises(StoreDamaged):
+    with pytest.raises(RunError, match="^store damaged: "):  # procedures.store.StoreDamaged
         RunStore(runs)
     # The real command, in its own process: the same line, exit status 1, nothing else.
     process = subprocess.run([sys.executable, "-m", "procedures.cli", "runs", "--runs-dir", str(runs)],
