@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, TextIO
 
 from procedures.station import RunError
-from procedures.store import SQLITE_FILE, STORE_ENV, RunState, RunStore, store_location
+from procedures.store import SQLITE_FILE, STORE_ENV, RunState, RunStore, StoreReadOnly, store_location
 
 if TYPE_CHECKING:  # only for annotations: the engine's, the report's and the display's stacks load on use
     from procedures.cli._display import Display
@@ -94,6 +94,20 @@ def open_store(args) -> RunStore:
     if url is None and not (path / SQLITE_FILE).is_file():
         raise RunError(f"no run store in {path} (use --runs-dir or $INSTRUMENT_RUNS, or --store URL)")
     return RunStore(path, url=url)
+
+
+def refuse_read_only(args, store: RunStore | None = None) -> None:
+    """A writing command on a store that can only be read (or that another process holds locked): its one
+    line, before anything is started."""
+    if store is not None:
+        if store.read_only:
+            raise StoreReadOnly(f"store is read-only: {store.location} (this command writes to it; runs, show, "
+                                "report -o FILE, export and history work)")
+        store.check_writable()  # another process's lock: said now, not after a simulated cell has started
+        return
+    if store_location(getattr(args, "store", None)) is None:
+        with RunStore(Path(args.runs_dir)) as opened:
+            refuse_read_only(args, opened)
 
 
 def write_output(path: str | Path, text: str) -> None:

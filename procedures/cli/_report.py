@@ -30,6 +30,9 @@ def run(args) -> int:
         html = render_report(r, store.samples(r["id"]), store.events(r["id"]), store.superseded_samples(r["id"]))
         default = store.run_dir(r["id"]) / ("report.pdf" if args.pdf else "report.html")
         path = Path(args.output) if args.output else default
+        if not args.output and store.read_only:
+            raise RunError(f"store is read-only: {store.location}: the report cannot be written to {default}; "
+                           "give a file elsewhere with -o FILE")
     if args.pdf:
         from procedures.report import render_pdf  # WeasyPrint and Pango load only for a PDF
 

@@ -13,6 +13,7 @@ from procedures.cli._common import (
     detach_at_once,
     drive,
     open_store,
+    refuse_read_only,
     seconds_value,
     station_for,
 )
@@ -41,6 +42,7 @@ def run(args) -> int:
     from procedures.engine import open_engine
 
     with open_store(args) as store:
+        refuse_read_only(args, store)
         try:
             stored = store.get_run(args.run_id)
         except KeyError as exc:

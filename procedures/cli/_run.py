@@ -15,6 +15,7 @@ from procedures.cli._common import (
     console_pause_handler,
     detach_at_once,
     drive,
+    refuse_read_only,
     seconds_value,
     station_for,
 )
@@ -72,6 +73,7 @@ def run(args: argparse.Namespace) -> int:
     from procedures.engine import open_engine
 
     check_procedure(args.procedure, args.overrides)  # a typo or a bad --set must not start a simulated cell
+    refuse_read_only(args)  # a store that cannot be written must not start a simulated cell either
     mode = "jsonl" if args.jsonl else "quiet" if args.quiet else "bar"
     display = Display(mode)
     with station_for(args.station, args.runs_dir, args.seed, args.calibration) as station:

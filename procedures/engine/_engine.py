@@ -47,7 +47,20 @@ from procedures.station import (
     StationRuntime,
     TruthLog,
 )
-from procedures.store import RESUMABLE_STATES, Commanded, Lease, RunState, RunStore, Sample, as_pose
+from procedures.store import (
+    RESUMABLE_STATES,
+    Commanded,
+    DuplicateStep,
+    Lease,
+    RunState,
+    RunStore,
+    Sample,
+    StoreError,
+    StoreFull,
+    StoreLocked,
+    StoreTrouble,
+    as_pose,
+)
 
 PauseDecision = Literal["resume", "abort", "detach"]
 """What a paused run does next: continue, abort (devices stopped), or stay PAUSED for ``instrument resume``."""
@@ -266,6 +279,13 @@ class RunEngine:
             self._set_state(RunState.FINISHED, hook="run_finished")
         except _Detached:
             pass
+        except StoreError as exc:
+            if isinstance(exc, DuplicateStep):  # not trouble with the store: a step written twice is a defect
+                self._end_with(exc)
+            elif not started:  # nothing was moved and the run's state is as it was: the store's one line
+                raise
+            else:
+                self._pause_on_store(exc)
         except Exception as exc:
             if started or not resuming or isinstance(exc, (RunAborted, KeyboardInterrupt)):
                 self._end_with(exc)
@@ -278,8 +298,42 @@ class RunEngine:
         finally:
             self.ending = True  # the outcome is stored: a late SIGTERM must not cut the hooks' last words
             self.hooks.close()  # bounded by the longest hook deadline; undelivered events are reported
-            self._log_hook_failures()
+            try:
+                self._log_hook_failures()
+            except StoreError:
+                pass  # the store's own trouble is what the session ends with
         return self.state
+
+    def _pause_on_store(self, exc: StoreError) -> None:
+        """The store failed mid-run (disk full, locked by another process, damaged, read-only): robot and
+        table stopped first, then the run PAUSED with the store's one line and what to do. When not even the
+        pause can be recorded, a ``StoreTrouble`` says so (the run then shows RUNNING; resume continues it)."""
+        self.ending = True
+        problems = self.station.safe_state()
+        if isinstance(exc, StoreFull):
+            self.store.make_room()  # the store's reserve: room for the pause and its reason
+            todo = "free space, then: "
+        elif isinstance(exc, StoreLocked):
+            todo = "end that process's transaction, then: "
+        elif isinstance(exc, StoreTrouble):
+            todo = "once the disk is sound: "
+        else:
+            todo = "repair the store, then: "
+        reason = f"{exc}; {todo}instrument resume {self.run_id}" + ("; " + "; ".join(problems) if problems else "")
+        # The devices are stopped: waiting for another process's lock to go is safe.
+        deadline = time.monotonic() + 4 * float(getattr(self.store, "timeout", 30.0))
+        while True:
+            try:
+                self._set_state(RunState.PAUSED, reason=reason, hook="run_paused")
+                return
+            except StoreLocked as again:
+                if time.monotonic() < deadline:
+                    continue
+                last: StoreError = again
+            except StoreError as again:
+                last = again
+            raise StoreTrouble(f"{reason} (robot and table stopped; the run could not be marked PAUSED: {last}; "
+                               "it shows RUNNING until resumed)") from None
 
     def _end_with(self, exc: BaseException) -> None:
         """End the session on ``exc`` (called while it is handled): FAILED after a failed dry run (no device

@@ -27,7 +27,7 @@ from procedures.station import (
     StationRuntime,
     read_text_file,
 )
-from procedures.store import Lease, RunStore
+from procedures.store import Lease, RunStore, StoreError
 
 
 def with_earlier_truth(station: StationFile, before: StationFile) -> StationFile:
@@ -127,5 +127,8 @@ def open_engine(
                 runtime.close()
         finally:
             if lease is not None:
-                run_store.release_lease(lease)
+                try:
+                    run_store.release_lease(lease)
+                except StoreError:
+                    pass  # a full, locked or damaged store (the outcome says so): a dead pid's lease is taken over
             run_store.close()

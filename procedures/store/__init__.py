@@ -10,13 +10,25 @@ What it offers:
   run-level record of each session's test conditions (``SessionConditions``); ``Lease``;
 - ``RunState`` (the states of a run, an Enum) and ``RESUMABLE_STATES``;
 - the schema's versioned migrations (``MIGRATIONS``, ``LATEST``), for SQLite and PostgreSQL alike;
-- its errors (``StoreError``, ``DuplicateStep``), kinds of ``procedures.station.RunError``.
+- its errors (``StoreError``, ``DuplicateStep``; store trouble: ``StoreTrouble`` (``StoreFull``, ``StoreLocked``: a
+  run pauses on it), ``StoreDamaged``, ``StoreReadOnly``), kinds of ``procedures.station.RunError``.
 
 It stands on ``procedures.station`` only: the kinds, the engine, the report and the faces read and write
 runs through it.
 """
 
-from procedures.store._db import SQLITE_FILE, STORE_ENV, DuplicateStep, StoreError, store_location
+from procedures.store._db import (
+    SQLITE_FILE,
+    STORE_ENV,
+    DuplicateStep,
+    StoreDamaged,
+    StoreError,
+    StoreFull,
+    StoreLocked,
+    StoreReadOnly,
+    StoreTrouble,
+    store_location,
+)
 from procedures.store._run_state import RESUMABLE_STATES, RunState
 from procedures.store._samples import (
     Commanded,
@@ -38,5 +50,6 @@ __all__ = [
     "LATEST", "MIGRATIONS", "RESUMABLE_STATES", "SQLITE_FILE", "STORE_ENV", "Commanded", "CorrectedPose",
     "DuplicateStep", "ExposureEvidence", "FrameExposure", "Lease", "Migration", "Pose", "PoseQuality", "Reference",
     "RunState", "RunStore", "Sample",
-    "SessionConditions", "SolvedPose", "StoreError", "StoredStream", "as_pose", "store_location",
+    "SessionConditions", "SolvedPose", "StoreDamaged", "StoreError", "StoreFull", "StoreLocked", "StoreReadOnly",
+    "StoreTrouble", "StoredStream", "as_pose", "store_location",
 ]

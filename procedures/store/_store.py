@@ -34,7 +34,16 @@ from pathlib import Path
 from typing import Any
 
 from procedures.station import RunLocked, StateConflict
-from procedures.store._db import SQLITE_FILE, Database, DuplicateStep, StoreError, connect, store_location
+from procedures.store._db import (
+    SQLITE_FILE,
+    Database,
+    DuplicateStep,
+    StoreError,
+    StoreTrouble,
+    connect,
+    store_location,
+    store_timeout,
+)
 from procedures.store._run_state import RunState
 from procedures.store._samples import SAMPLE_FIELDS, Reference, Sample
 from procedures.store._sessions import SessionConditions
@@ -125,22 +134,29 @@ class RunStore:
     runs_dir : the runs folder: per-run files, and the SQLite database ``runs.sqlite`` by default
     url : a ``postgresql://`` URL for a store shared by many cells; default ``$INSTRUMENT_STORE``, and
         when that is unset or empty the runs folder's SQLite file. The per-run files stay in ``runs_dir``.
-    timeout : seconds to wait for a lock or a connection
+    timeout : seconds to wait for a lock or a connection; default ``$INSTRUMENT_STORE_TIMEOUT``, else 30
 
     One connection per store object, used from one thread at a time (the engine's). Opening a store
     migrates it to the latest schema version (``procedures.store._schema``).
     """
 
-    def __init__(self, runs_dir: str | Path, *, url: str | None = None, timeout: float = 30.0) -> None:
+    def __init__(self, runs_dir: str | Path, *, url: str | None = None, timeout: float | None = None) -> None:
         self.runs_dir = Path(runs_dir)
         self.url = store_location(url)
-        if self.url is None:
-            self.runs_dir.mkdir(parents=True, exist_ok=True)
-        self._db: Database = connect(self.runs_dir, self.url, timeout=timeout)
+        if self.url is None and not self.runs_dir.is_dir():
+            try:
+                self.runs_dir.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise StoreError(f"cannot make the runs folder {self.runs_dir}: {exc.strerror or exc}") from None
+        self.timeout = store_timeout() if timeout is None else timeout
+        """Seconds a statement waits for another process's lock before ``StoreLocked``."""
+        self._db: Database = connect(self.runs_dir, self.url, timeout=self.timeout)
         self.dialect = self._db.dialect
         self.location = self._db.location
         """Where the store is, for messages: the SQLite file, or the URL without its password."""
         self.path = self.runs_dir / SQLITE_FILE
+        self.read_only: bool = bool(getattr(self._db, "read_only", False))
+        """Opened read-only (the folder or the file cannot be written): every write is a ``StoreReadOnly``."""
 
     def close(self) -> None:
         self._db.close()
@@ -151,9 +167,26 @@ class RunStore:
     def __exit__(self, *exc) -> None:
         self.close()
 
+    def check_writable(self) -> None:
+        """Take the write lock and give it back at once: ``StoreReadOnly``, ``StoreLocked`` (after the busy
+        timeout) ... before a command starts anything it would then have to stop."""
+        with self._db.transaction():
+            pass
+
+    def make_room(self) -> bool:
+        """Give back the room the SQLite store keeps in reserve (see ``RESERVE_BYTES``), so that a run the full
+        disk stopped can still record its pause; whether there was any. Refilled the next time it is opened."""
+        return self._db.release_reserve()
+
     def run_dir(self, run_id: str) -> Path:
+        """The run's folder (made if missing; on a read-only runs folder it may not exist, and a write there
+        is the writer's one-line error)."""
         path = self.runs_dir / run_id
-        path.mkdir(parents=True, exist_ok=True)
+        try:
+            path.mkdir(parents=True, exist_ok=True)
+        except OSError:
+            if not self.read_only:
+                raise
         return path
 
     def version(self) -> int:
@@ -232,7 +265,10 @@ class RunStore:
             raise StateConflict(f"run {run_id}: cannot set {state.value}: it is "
                                 f"{now_state[0]['state'] if now_state else 'gone'}{holder} (changed by another "
                                 "process?)")
-        self.log(run_id, "state", state.value + (f": {reason}" if reason else ""))
+        try:
+            self.log(run_id, "state", state.value + (f": {reason}" if reason else ""))
+        except StoreTrouble:
+            pass  # a full or locked store: the state (and its reason) is in the run row, only the event is missing
 
     # ---------------------------------------------------------------------------------- leases
     def acquire_lease(self, run_id: str) -> Lease:
