@@ -142,7 +142,7 @@ def test_bomb_png_is_a_real_image():
 
 
 def _assert_refused(code: int, err: str, seconds: float, path: Path, width: int, height: int) -> None:
-    from procedures.cli._locate import MAX_IMAGE_PIXELS
+    from procedures.cli import MAX_IMAGE_PIXELS
 
     assert code == 1, err
     lines = err.strip().splitlines()
@@ -191,13 +191,13 @@ def test_bomb_is_refused_after_cv2_was_imported(tmp_path, ext):
 
 
 def test_declared_size_of_each_format():
-    from procedures.cli._locate import declared_size
+    from procedures.cli import declared_image_size
 
     image = np.zeros((37, 53), np.uint8)
     for ext in (".png", ".bmp", ".tiff", ".jpg", ".pgm", ".pam"):
-        assert declared_size(cv2.imencode(ext, image)[1].tobytes()) == (53, 37), ext
-    assert declared_size(cv2.imencode(".tiff", image.astype(np.uint16))[1].tobytes()) == (53, 37)
-    assert declared_size(b"GIF89a" + bytes(20)) is None and declared_size(b"") is None
+        assert declared_image_size(cv2.imencode(ext, image)[1].tobytes()) == (53, 37), ext
+    assert declared_image_size(cv2.imencode(".tiff", image.astype(np.uint16))[1].tobytes()) == (53, 37)
+    assert declared_image_size(b"GIF89a" + bytes(20)) is None and declared_image_size(b"") is None
 
 
 def test_an_image_whose_size_cannot_be_read_is_refused(tmp_path, capsys):

@@ -127,7 +127,7 @@ def _jpeg_size(data: bytes) -> tuple[int, int] | None:
     return None
 
 
-def declared_size(data: bytes) -> tuple[int, int] | None:
+def declared_image_size(data: bytes) -> tuple[int, int] | None:
     """(width, height) an image file's header declares, from its first bytes; None when the format is not
     one of PNG, BMP, TIFF, JPEG, PNM or the header is unreadable."""
     if data[:8] == b"\x89PNG\r\n\x1a\n":
@@ -153,7 +153,7 @@ def declared_size(data: bytes) -> tuple[int, int] | None:
 
 def size_refusal(data: bytes) -> str | None:
     """Why an image file with these first bytes is not decoded (one line), or None when it may be."""
-    size = declared_size(data)
+    size = declared_image_size(data)
     if size is None:
         return ("cannot read the image size from its header (not a PNG, BMP, TIFF, JPEG or PNM file, or "
                 "cut short): not decoded")
