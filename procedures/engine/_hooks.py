@@ -171,6 +171,7 @@ class _ShellCall:
         self.owner = owner
         self.marker = marker
         self.process = process
+        self.pid = os.getpid()  # the process that started it: a forked child never stops its parent's hooks
         self.timer: threading.Timer | None = None
         self._lock = threading.Lock()
         self.stopped = False
@@ -195,7 +196,8 @@ _LIVE_LOCK = threading.Lock()
 def stop_shell_hooks(owner: object | None = None) -> None:
     """Stop every shell hook call still running or with processes left behind (of ``owner``, or all)."""
     with _LIVE_LOCK:
-        calls = [call for call in _LIVE.values() if owner is None or call.owner is owner]
+        calls = [call for call in _LIVE.values()
+                 if (owner is None or call.owner is owner) and call.pid == os.getpid()]
     for call in calls:
         call.stop()
 
