@@ -199,7 +199,8 @@ def _read_image(name: str):
 
 
 def run(args) -> int:
-    # Read by OpenCV when it first decodes: a decompression bomb is refused, not allocated.
+    # A second guard only: OpenCV reads this once, when cv2 loads (here, if nothing imported it before); the
+    # header check in _read_image is what refuses a decompression bomb in any process.
     os.environ.setdefault("OPENCV_IO_MAX_IMAGE_PIXELS", str(MAX_IMAGE_PIXELS))
     from instrument.vision import CrossNotFound, locate_cross
 
