@@ -10,9 +10,13 @@ import http.server
 import importlib.metadata
 import json
 import os
+import signal
 import socket
+import subprocess
+import sys
 import threading
 import time
+import uuid
 
 import pytest
 
@@ -237,7 +241,7 @@ def test_a_shell_hook_past_its_deadline_is_killed_with_its_children(tmp_path):
     start = time.monotonic()
     (message,) = HookRunner([spec]).call(EVENT)
     assert time.monotonic() - start < 4
-    assert "process group killed" in message
+    assert "process group and descendants stopped" in message
     child = int(pid_file.read_text())
     for _ in range(100):  # the group's SIGKILL reaches the background child too
         try:
@@ -290,3 +294,121 @@ def test_a_run_with_failing_hooks_loses_no_data(tmp_path, serve):
     assert [e["event"] for e in received] == ["run_started"] + ["point_measured"] * 15 + ["run_finished"]
     assert received[1]["step"] == 0 and received[1]["ok"] is True and len(received[1]["pose"]) == 6
     assert sum(e["kind"] == "hook_failed" for e in events) == 15
+
+
+# ------------------------------------------------------------- no hook process outlives its deadline or its run
+def _carrying(mark: str) -> list[int]:
+    """Live (not zombie) processes whose environment holds ``TEST_MARK=mark``: what this test started."""
+    found = []
+    for name in os.listdir("/proc"):
+        if not name.isdigit():
+            continue
+        try:
+            with open(f"/proc/{name}/environ", "rb") as environ:
+                if f"TEST_MARK={mark}".encode() not in environ.read().split(b"\0"):
+                    continue
+            with open(f"/proc/{name}/stat") as stat:
+                if stat.read().rsplit(")", 1)[1].split()[0] == "Z":
+                    continue
+        except OSError:
+            continue
+        found.append(int(name))
+    return found
+
+
+def _wait_for(condition, seconds: float) -> bool:
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        if condition():
+            return True
+        time.sleep(0.05)
+    return condition()
+
+
+@pytest.fixture
+def mark():
+    """A mark for the processes a test's hooks start (``export TEST_MARK=…`` in the command, inherited by
+    every descendant); afterwards whatever still carries it is killed, by its process id."""
+    value = uuid.uuid4().hex
+    yield value
+    for pid in _carrying(value):
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+
+
+def test_a_hook_still_running_when_the_run_ends_is_stopped(mark):
+    """A hook whose deadline lies past the run's end is stopped when the runner closes (it was left running,
+    reparented to init: ``sleep 4244`` with ppid 1), with its background and ``setsid`` children."""
+    spec = HookSpec(shell=f"export TEST_MARK={mark}; setsid sleep 300 & sleep 300 & sleep 300", timeout_s=60)
+    runner = HookRunner([spec])
+    runner.emit(EVENT)
+    assert _wait_for(lambda: len(_carrying(mark)) >= 3, 5)
+    start = time.monotonic()
+    runner.close(grace_s=0.5)  # the run's end
+    assert _carrying(mark) == []
+    assert time.monotonic() - start < 5
+    (message,) = runner.take_failures()
+    assert "still running when the run ended; its processes stopped" in message
+
+
+def test_setsid_children_do_not_outlive_the_deadline(mark):
+    """The shell returns at once, leaving ``setsid sleep 300 &``: it may run until the call's deadline, no longer."""
+    spec = HookSpec(shell=f"export TEST_MARK={mark}; setsid sleep 300 & setsid sh -c 'sleep 300 & sleep 300' &",
+                    timeout_s=1.5)
+    start = time.monotonic()
+    assert HookRunner([spec]).call(EVENT) == []
+    assert time.monotonic() - start < 1.5
+    assert _wait_for(lambda: len(_carrying(mark)) >= 3, 1)  # running, within the deadline
+    assert _wait_for(lambda: _carrying(mark) == [], 4)  # then stopped: SIGTERM at 1.5 s
+    assert time.monotonic() - start < 5
+
+
+def test_children_of_a_hook_past_its_deadline_are_stopped_wherever_they_moved(mark):
+    spec = HookSpec(shell=f"export TEST_MARK={mark}; setsid sleep 300 & sleep 300", timeout_s=0.5)
+    start = time.monotonic()
+    (message,) = HookRunner([spec]).call(EVENT)
+    assert "did not finish within 0.5 s" in message
+    assert _carrying(mark) == []
+    assert time.monotonic() - start < 4
+
+
+def test_a_process_that_ends_takes_its_hooks_with_it(mark, tmp_path):
+    """A command that exits while hooks still run (no ``close``: an exit, an unhandled error) stops them."""
+    script = (
+        "import sys, time\n"
+        "from procedures.engine import HookRunner\n"
+        "from procedures.station import HookSpec\n"
+        f"spec = HookSpec(shell='export TEST_MARK={mark}; setsid sleep 300 & sleep 300', timeout_s=60)\n"
+        "runner = HookRunner([spec])\n"
+        "runner.emit({'event': 'run_finished', 'run_id': 'abc', 'state': 'FINISHED'})\n"
+        "time.sleep(1.0)\n"
+        "sys.exit(0)\n"
+    )
+    started = subprocess.run([sys.executable, "-c", script], timeout=20, capture_output=True, text=True)
+    assert started.returncode == 0, started.stderr
+    assert _carrying(mark) == []
+
+
+def test_a_run_leaves_no_hook_process_behind(tmp_path, mark):
+    station = write_station(tmp_path / "station.yaml")
+    proc = tmp_path / "iso.yaml"
+    proc.write_text(
+        "procedure: iso9283_repeatability\n"
+        "parameters: {cycles: 2, settle_time_s: 0, frames_per_pose: 1}\n"
+        "hooks:\n"
+        f"  - shell: 'export TEST_MARK={mark}; setsid sleep 300 &'\n"
+        "    on: [run_started]\n"
+        "    timeout_s: 60\n"
+        f"  - shell: 'export TEST_MARK={mark}; sleep 300'\n"
+        "    on: [run_finished]\n"
+        "    timeout_s: 2\n"
+    )
+    cell = FakeCell(seed=4)
+    start = time.monotonic()
+    with open_engine(tmp_path / "runs", procedure=proc, station=station, science=FakeScience(cell),
+                     devices=cell.devices(), operator=cell.operator) as engine:
+        assert engine.execute() == "FINISHED"
+    assert _carrying(mark) == []
+    assert time.monotonic() - start < 15

@@ -5,8 +5,9 @@ What it offers: ``main(argv)`` (the ``instrument`` script's entry point, ``proce
 run's terminal session is made of: ``drive`` (a run or resume from start to its last line), the live
 ``Display``, the pause prompt (``ask_pause_key``, ``console_pause_handler``), the signal handling
 (``signals_control``, ``detach_at_once``), the command that continues a paused run (``resume_command``),
-where ``--station sim`` cells live (``cell_directory``) and how ``instrument sim`` lists a cell's endpoints
-(``endpoint_lines``).
+where ``--station sim`` cells live (``cell_directory``), how ``instrument sim`` lists a cell's endpoints
+(``endpoint_lines``) and what ``instrument locate`` decodes (``MAX_IMAGE_PIXELS``, checked against the size an
+image file's header declares: ``declared_image_size``).
 
 One module per command (``_run``, ``_resume``, ``_runs``, ``_show``, ``_history``, ``_report``,
 ``_export``, ``_validate``, ``_locate``, ``_sim``, ``_serve``), with what they share in ``_common`` and the
@@ -36,6 +37,7 @@ if TYPE_CHECKING:
         signals_control,
     )
     from procedures.cli._display import Display
+    from procedures.cli._locate import MAX_IMAGE_PIXELS, declared_image_size
     from procedures.cli._main import ERROR_LOG, build_parser
     from procedures.cli._sim import endpoint_lines
 
@@ -43,7 +45,8 @@ if TYPE_CHECKING:
 # ``instrument`` script's own import of ``main`` is over before a Ctrl-C could find Python's traceback.
 _LAZY = {**dict.fromkeys(("ask_pause_key", "cell_directory", "console_pause_handler", "detach_at_once", "drive",
                           "resume_command", "signals_control"), "_common"),
-         "Display": "_display", "endpoint_lines": "_sim", "ERROR_LOG": "_main", "build_parser": "_main"}
+         "Display": "_display", "endpoint_lines": "_sim",
+         "MAX_IMAGE_PIXELS": "_locate", "declared_image_size": "_locate", "ERROR_LOG": "_main", "build_parser": "_main"}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -75,5 +78,6 @@ def __getattr__(name: str) -> Any:
     return value
 
 
-__all__ = ["ERROR_LOG", "Display", "ask_pause_key", "build_parser", "cell_directory", "console_pause_handler",
-           "detach_at_once", "drive", "endpoint_lines", "main", "resume_command", "signals_control"]
+__all__ = ["ERROR_LOG", "MAX_IMAGE_PIXELS", "Display", "ask_pause_key", "build_parser", "cell_directory",
+           "console_pause_handler", "declared_image_size", "detach_at_once", "drive", "endpoint_lines", "main",
+           "resume_command", "signals_control"]

@@ -9,8 +9,13 @@ holds up a motion. Every call has a **total** deadline (``timeout_s``):
 - callable: run in a daemon thread, abandoned at the deadline (at most ``MAX_ABANDONED`` such
   threads per hook; after that its events are logged as undelivered instead of piling up threads);
 - shell: its own session and process group, stdin/stderr through temporary files (a command that
-  leaves a background child holding a pipe cannot block us); the group is killed at the deadline
-  and reaped within ``KILL_WAIT_S``;
+  leaves a background child holding a pipe cannot block us), and a new marker per call in
+  ``$INSTRUMENT_HOOK_ID`` that every descendant inherits. At the deadline the group and every process
+  carrying the marker (found in ``/proc/*/environ``, however it left the group: ``setsid``, a double
+  fork) get SIGTERM, SIGKILL after ``TERM_GRACE_S``; the shell is reaped within ``KILL_WAIT_S``. What a
+  shell that returned left behind may run until the call's deadline, then is stopped the same way.
+  ``close`` (the run's end) stops every process its shell hooks still run, and so does the process's
+  exit (``atexit``), so no hook process outlives its run;
 - http: no proxy, no redirects (a 3xx is a failure), the socket shut down at the deadline however
   slowly the server trickles, at most ``MAX_RESPONSE_BYTES`` of the answer read.
 
@@ -21,6 +26,7 @@ event it could not deliver, so nothing is lost silently.
 
 from __future__ import annotations
 
+import atexit
 import http.client
 import importlib
 import importlib.metadata
@@ -33,6 +39,7 @@ import subprocess
 import tempfile
 import threading
 import time
+import uuid
 from collections.abc import Callable, Iterable
 from typing import Any
 from urllib.parse import urlparse
@@ -44,6 +51,8 @@ QUEUE_CAPACITY = 1000  # events waiting per hook; more are logged as undelivered
 MAX_ABANDONED = 4  # callable calls still running past their deadline, per hook
 MAX_RESPONSE_BYTES = 64 * 1024
 KILL_WAIT_S = 2.0  # after SIGKILL to a shell hook's group, how long its shell may take to be reaped
+TERM_GRACE_S = 1.0  # after SIGTERM to a shell hook's processes, how long they have before SIGKILL
+HOOK_ID_VARIABLE = "INSTRUMENT_HOOK_ID"  # in a shell hook's environment: the call's marker, inherited by descendants
 
 
 class HookFailed(RuntimeError):
@@ -99,29 +108,137 @@ class _CallableHook:
             raise HookFailed(f"{type(exc).__name__}: {exc}")
 
 
-def run_shell(spec: HookSpec, command: str, event: dict) -> None:
+def _marked(marker: str) -> list[int]:
+    """The processes whose environment carries ``HOOK_ID_VARIABLE=marker`` (a zombie's reads as empty)."""
+    needle = f"{HOOK_ID_VARIABLE}={marker}".encode()
+    found: list[int] = []
+    try:
+        names = os.listdir("/proc")
+    except OSError:  # no /proc: only the process group is known
+        return found
+    for name in names:
+        if not name.isdigit():
+            continue
+        try:
+            with open(f"/proc/{name}/environ", "rb") as environ:
+                if needle in environ.read().split(b"\0"):
+                    found.append(int(name))
+        except OSError:  # gone, or not ours to read (then not ours to signal either)
+            continue
+    return found
+
+
+def stop_hook_processes(marker: str, group: int | None = None, grace_s: float = TERM_GRACE_S) -> list[int]:
+    """Stop what one shell hook call started: its process ``group`` (when its shell is not yet reaped) and
+    every process carrying its marker, wherever it moved (``setsid``, a double fork). SIGTERM first,
+    SIGKILL to what is left after ``grace_s``, again until nothing carries the marker (a process forked
+    meanwhile). Returns the process ids signalled (for tests and messages)."""
+    signalled: set[int] = set()
+
+    def send(sig: signal.Signals) -> list[int]:
+        pids = _marked(marker)
+        if group is not None:
+            try:
+                os.killpg(group, sig)
+            except (ProcessLookupError, PermissionError):
+                pass
+        for pid in pids:
+            try:
+                os.kill(pid, sig)
+            except (ProcessLookupError, PermissionError):
+                pass
+        signalled.update(pids)
+        return pids
+
+    if not send(signal.SIGTERM) and group is None:
+        return []
+    deadline = time.monotonic() + grace_s
+    while time.monotonic() < deadline and _marked(marker):
+        time.sleep(0.02)
+    for _ in range(20):
+        send(signal.SIGKILL)
+        time.sleep(0.02)
+        if not _marked(marker):
+            break
+        group = None  # killed once; what still carries the marker is found by it
+    return sorted(signalled)
+
+
+class _ShellCall:
+    """One shell hook call whose processes may still run: its shell, or what the shell left behind."""
+
+    def __init__(self, owner: object, marker: str, process: subprocess.Popen) -> None:
+        self.owner = owner
+        self.marker = marker
+        self.process = process
+        self.pid = os.getpid()  # the process that started it: a forked child never stops its parent's hooks
+        self.timer: threading.Timer | None = None
+        self._lock = threading.Lock()
+        self.stopped = False
+
+    def stop(self) -> None:
+        with self._lock:
+            if self.stopped:
+                return
+            self.stopped = True
+        if self.timer is not None:
+            self.timer.cancel()
+        group = self.process.pid if self.process.returncode is None else None  # a reaped shell's id may be reused
+        stop_hook_processes(self.marker, group)
+        with _LIVE_LOCK:
+            _LIVE.pop(self.marker, None)
+
+
+_LIVE: dict[str, _ShellCall] = {}  # marker -> a call with processes that may still run
+_LIVE_LOCK = threading.Lock()
+
+
+def stop_shell_hooks(owner: object | None = None) -> None:
+    """Stop every shell hook call still running or with processes left behind (of ``owner``, or all)."""
+    with _LIVE_LOCK:
+        calls = [call for call in _LIVE.values()
+                 if (owner is None or call.owner is owner) and call.pid == os.getpid()]
+    for call in calls:
+        call.stop()
+
+
+atexit.register(stop_shell_hooks)  # a process that ends with hooks still running takes them with it
+
+
+def run_shell(spec: HookSpec, command: str, event: dict, owner: object | None = None) -> None:
     """Run one shell hook within its deadline (see the module docstring)."""
     payload = json.dumps(event)
-    env = {**os.environ, "INSTRUMENT_EVENT": payload, "INSTRUMENT_EVENT_NAME": str(event.get("event"))}
+    marker = uuid.uuid4().hex
+    env = {**os.environ, "INSTRUMENT_EVENT": payload, "INSTRUMENT_EVENT_NAME": str(event.get("event")),
+           HOOK_ID_VARIABLE: marker}
+    deadline = time.monotonic() + spec.timeout_s
     with tempfile.TemporaryFile() as stdin, tempfile.TemporaryFile() as stderr:
         stdin.write(payload.encode())
         stdin.seek(0)
         # Files, not pipes: a background child that inherits them cannot keep us waiting for EOF.
-        process = subprocess.Popen(command, shell=True, stdin=stdin, stdout=subprocess.DEVNULL, stderr=stderr,
-                                   env=env, start_new_session=True)
+        with _LIVE_LOCK:
+            process = subprocess.Popen(command, shell=True, stdin=stdin, stdout=subprocess.DEVNULL, stderr=stderr,
+                                       env=env, start_new_session=True)
+            call = _LIVE[marker] = _ShellCall(owner, marker, process)
         try:
             status = process.wait(timeout=spec.timeout_s)
         except subprocess.TimeoutExpired:
-            try:
-                os.killpg(process.pid, signal.SIGKILL)  # the whole group: the shell and what it started
-            except ProcessLookupError:
-                pass
+            call.stop()  # the whole group (the shell and what it started) and whatever carries the marker
             try:
                 process.wait(timeout=KILL_WAIT_S)
             except subprocess.TimeoutExpired:
                 pass  # a zombie we cannot reap now; the OS reaps it with us
-            raise HookFailed(f"shell command did not finish within {spec.timeout_s} s (its process group killed)") \
-                from None
+            raise HookFailed(f"shell command did not finish within {spec.timeout_s} s (its process group and "
+                             "descendants stopped)") from None
+        if call.stopped:  # stopped from outside (the run ended) while it ran
+            raise HookFailed("shell command stopped: the run ended while it ran")
+        if _marked(marker):  # it left processes behind: they may run until the call's deadline, not beyond
+            call.timer = threading.Timer(max(0.0, deadline - time.monotonic()), call.stop)
+            call.timer.daemon = True
+            call.timer.start()
+        else:
+            with _LIVE_LOCK:
+                _LIVE.pop(marker, None)
         if status != 0:
             stderr.seek(0)
             tail = stderr.read()[-300:].decode(errors="replace").strip()
@@ -180,10 +297,23 @@ def run_http(spec: HookSpec, url: str, event: dict) -> None:
         connection.close()
 
 
+class _ShellHook:
+    """A shell command per call; ``stop`` ends what its calls still run (see ``run_shell``)."""
+
+    def __init__(self, spec: HookSpec, command: str) -> None:
+        self.spec = spec
+        self.command = command
+
+    def __call__(self, event: dict) -> None:
+        run_shell(self.spec, self.command, event, owner=self)
+
+    def stop(self) -> None:
+        stop_shell_hooks(owner=self)
+
+
 def _caller(spec: HookSpec) -> Callable[[dict], None]:
     if spec.shell:
-        command = spec.shell
-        return lambda event: run_shell(spec, command, event)
+        return _ShellHook(spec, spec.shell)
     if spec.http:
         url = spec.http
         return lambda event: run_http(spec, url, event)
@@ -247,9 +377,13 @@ class _HookWorker:
             self.closed = True
             current = self.current
             if current is not None:
+                outcome = ("its processes stopped" if isinstance(self.call, _ShellHook)
+                           else "its outcome is unknown")
                 self.report(f"hook {describe(self.spec)!r} on {current.get('event')}: still running when the run "
-                            "ended; its outcome is unknown", current)
+                            f"ended; {outcome}", current)
             self.queue.put_nowait(_STOP)  # room was made above; the thread ends after its current call
+        if isinstance(self.call, _ShellHook):  # the run is over: no shell hook process outlives it
+            self.call.stop()
 
 
 class HookRunner:
