@@ -12,7 +12,6 @@ import numpy as np
 from pydantic import ValidationInfo
 
 from instrument import COMPONENTS, __version__
-from instrument.compensation import InsufficientCalibrationData
 from instrument.environment import AirConditions
 from procedures.kinds._conditions import local_time, operator_of
 from procedures.kinds._environment import environment_summary
@@ -203,6 +202,9 @@ def analyse_calibration(samples: Sequence[Sample], ctx: AnalysisContext, *, kind
     temperature = None if mean_air is None or mean_air.get("air_temperature_k") is None \
         else mean_air["air_temperature_k"] - 273.15
     first = min((s.t_measured for s in samples if s.t_measured is not None), default=None)
+    # Imported here: validating a procedure loads this module, and must not load the measurement core.
+    from instrument.compensation import InsufficientCalibrationData
+
     try:
         fit = ctx.science.fit_calibration(kind, data, {
             "run_id": ctx.run_id, "date": local_time(first) or time.strftime("%Y-%m-%dT%H:%M:%S"),
