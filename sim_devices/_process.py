@@ -199,7 +199,16 @@ class TwinProcess:
         process = ctx.Process(target=_child_main, args=(self.factory, self.kwargs, child, os.getpid(), self.nice),
                               daemon=True)
         self._process = process
-        process.start()
+        # The child ignores SIGINT from its first instruction (an ignored signal stays ignored across
+        # exec): a Ctrl-C to the terminal's process group during its start-up, before it has a session
+        # of its own, must not print an import traceback from it.
+        in_main = threading.current_thread() is threading.main_thread()
+        previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if in_main else None
+        try:
+            process.start()
+        finally:
+            if in_main:
+                signal.signal(signal.SIGINT, previous if previous is not None else signal.SIG_DFL)
         child.close()
         self._conn = parent
 
