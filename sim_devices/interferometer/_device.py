@@ -51,6 +51,7 @@ FEED_FAULTS = (FaultKind.BEAM_BREAK, FaultKind.STALL, FaultKind.DROP_REPLY, Faul
                FaultKind.GARBAGE, FaultKind.DISCONNECT, FaultKind.DELAY)
 BATCH = 0.005  # s: how far past a due sample the head's clock thread sleeps (see _run)
 
+
 class Transport(Protocol):
     def send_frame(self, can_id: int, data: bytes, timestamp: float) -> None: ...
 

@@ -176,10 +176,8 @@ class RotaryTableTwin:
             self.physics.forget_published()
         self.physics.update()
         if wait and self._publisher is not None:
-            deadline = time.monotonic() + timeout
             with self._mail:
-                while (self._pending is not None or self._publishing) and time.monotonic() < deadline:
-                    self._mail.wait(0.05)
+                self._mail.wait_for(self._seen, timeout)  # _seen takes the same (reentrant) lock
 
     # ----------------------------------------------------------------------------- host API
     def faults(self, transport: str) -> FaultPlan:
