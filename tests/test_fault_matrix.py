@@ -35,6 +35,7 @@ import pytest
 from instrument import ARCSEC
 from procedures.station import TruthLog
 from sim_devices.cell import SimCell
+from tests._cells import STATIC_ROBOT
 
 ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.slow
@@ -113,7 +114,7 @@ ROWS: list[dict[str, Any]] = []
 @pytest.fixture(scope="module")
 def cell(tmp_path_factory):
     with SimCell(seed=11, directory=tmp_path_factory.mktemp("cell"), time_scale=4.0,
-                 config={"world": {"ack_timeout_s": ACK_TIMEOUT_S}}) as running:
+                 config={"world": {"ack_timeout_s": ACK_TIMEOUT_S}, "robot": STATIC_ROBOT}) as running:
         yield running
     _write_table()
 

@@ -22,6 +22,7 @@ from instrument.uncertainty import coverage_study
 from procedures.engine import open_engine, resolve_procedure_path
 from procedures.kinds.iso import coverage_case
 from sim_devices.cell import SimCell
+from tests._cells import STATIC_ROBOT
 
 pytestmark = pytest.mark.slow
 
@@ -29,7 +30,7 @@ pytestmark = pytest.mark.slow
 @pytest.fixture(scope="module")
 def cell(tmp_path_factory):
     directory = tmp_path_factory.mktemp("cell")
-    with SimCell(seed=7, directory=directory, time_scale=4.0) as running:
+    with SimCell(seed=7, directory=directory, time_scale=16.0, config={"robot": STATIC_ROBOT}) as running:
         yield running
 
 
