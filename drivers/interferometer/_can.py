@@ -56,6 +56,7 @@ logging.getLogger("can.interfaces.socketcand.socketcand").addFilter(_DropSplitFr
 
 _RECV_POLL = 0.05  # s: how long one bus.recv may block, i.e. how fast close() and EOF are noticed
 _GARBAGE_BEFORE_REOPEN = 3  # consecutive undecodable reads before the transport is re-opened
+_FIRST_READING_CYCLES = 1.5  # measuring cycles environment() waits, right after open, for the first reading
 
 
 class CanInterferometer:
@@ -234,7 +235,8 @@ class CanInterferometer:
         Raises
         ------
         FeedGap
-            No reading yet, or the newest is older than ``max_age``.
+            No reading yet (after waiting up to 1.5 measuring cycles for the first one since
+            ``open``), or the newest is older than ``max_age``.
         DeviceConnectionError
             The feed is closed or the connection is down.
         DeviceFault
@@ -242,6 +244,11 @@ class CanInterferometer:
         """
         limit = 3.0 / self.layout.environment_rate if max_age is None else float(max_age)
         reading, age = self._environment.newest()
+        if reading is None and self._connection_failure() is None:
+            # Just opened: the unit sends a reading once per measuring cycle, so the first one is at
+            # most a cycle away; wait for it (bounded) rather than fail a run's first step on it.
+            self._environment.wait_first(_FIRST_READING_CYCLES / self.layout.environment_rate)
+            reading, age = self._environment.newest()
         if reading is None or age > limit:
             failure = self._connection_failure()
             if failure is not None:

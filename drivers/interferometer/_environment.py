@@ -21,6 +21,7 @@ class EnvironmentTracker:
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
+        self._first = threading.Event()  # set by the first complete reading
         self._air: EnvironmentAirFrame | None = None
         self._reading: EnvironmentReading | None = None
         self._reading_mono = 0.0
@@ -45,8 +46,13 @@ class EnvironmentTracker:
                 relative_humidity=air.relative_humidity, material_temperatures_k=frame.temperatures_k,
                 material_fitted=frame.fitted, faults=air.faults + frame.faults)
             self._reading_mono = time.monotonic()
+        self._first.set()
         missed = 0 if previous is None else (frame.counter - previous.counter - 1) % CYCLE_MODULUS
         return True, missed
+
+    def wait_first(self, timeout: float) -> bool:
+        """Wait up to ``timeout`` seconds for the first complete reading; whether there is one."""
+        return self._first.wait(max(timeout, 0.0))
 
     def newest(self) -> tuple[EnvironmentReading | None, float]:
         """The newest reading and its age in seconds (host clock); ``(None, inf)`` before the first."""

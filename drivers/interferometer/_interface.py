@@ -88,6 +88,7 @@ class Interferometer(Protocol):
 
     def environment(self, max_age: float | None = None, *, strict: bool = True) -> EnvironmentReading:
         """The newest reading of the environmental unit; ``FeedGap`` if it is older than ``max_age``
-        seconds (default: three measuring cycles), ``DeviceFault`` if a sensor reports a fault or an
-        air sensor gives no reading (unless ``strict`` is False: then the reading, NaN where none)."""
+        seconds (default: three measuring cycles) or, right after ``open``, if none has come within
+        1.5 measuring cycles; ``DeviceFault`` if a sensor reports a fault or an air sensor gives no
+        reading (unless ``strict`` is False: then the reading, NaN where none)."""
         ...
