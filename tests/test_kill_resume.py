@@ -120,6 +120,8 @@ def test_kill_9_at_a_random_moment_then_resume_to_finished(tmp_path, number, nam
     sessions = [yaml.safe_load((cell / "station.yaml").read_text())["simulation"]["session"]
                 for cell in (first_cell, second_cell)]
     assert sessions == [0, 1]  # the resumed cell: the same seed, its own noise
+    # The kind measures at rest: neither cell sampled the robot's dense truth (``measures_in_motion``).
+    assert not any(path.is_file() for cell in cells for path in (cell / "trajectories").glob("*"))
 
     # The truth of every sample, before and after the crash, reaches the results.
     if name == "iso9283_repeatability":

@@ -245,10 +245,12 @@ def calibration_files(paths: list[str]) -> list[str]:
 
 @contextmanager
 def station_for(station: str | None, runs_dir: Path, seed: int, calibration: list[str] | None = None,
-                session: int = 0) -> Iterator[str | None]:
+                session: int = 0, motion_truth: bool = True) -> Iterator[str | None]:
     """``sim`` starts the simulated cell for the run (its files kept in a folder of its own under the runs
     folder); ``calibration``: the records the cell's station puts in force (``--calibration``);
-    ``session``: which start of a cell this is for the run (a resumed run's cell draws fresh noise)."""
+    ``session``: which start of a cell this is for the run (a resumed run's cell draws fresh noise);
+    ``motion_truth``: whether the robot twin records its dense truth (the kind ``measures_in_motion``;
+    sampling it is most of the twin's CPU, and a run measuring at rest never reads it)."""
     records = calibration_files(calibration or [])
     if records and station != "sim":
         raise RunError("--calibration goes with --station sim; a station file names its records in "
@@ -259,7 +261,8 @@ def station_for(station: str | None, runs_dir: Path, seed: int, calibration: lis
     from sim_devices.cell import SimCell
 
     directory = cell_directory(runs_dir)
-    cell = SimCell(seed=seed, directory=directory, session=session)
+    cell = SimCell(seed=seed, directory=directory, session=session,
+                   config=None if motion_truth else {"robot": {"truth_rate": 0.0}})
     try:
         cell.start()
     except KeyboardInterrupt:  # Ctrl-C while the twins start: none is left behind

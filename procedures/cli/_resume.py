@@ -40,6 +40,7 @@ def register(subparsers) -> None:
 def run(args) -> int:
     from procedures.cli._display import Display
     from procedures.engine import open_engine
+    from procedures.kinds import KINDS
 
     with open_store(args) as store:
         refuse_read_only(args, store)
@@ -64,7 +65,9 @@ def run(args) -> int:
     if station_arg == "sim" and args.station is None and not args.quiet and not args.jsonl:
         print(f"run {stored['id']} was measured on a simulated cell: starting a new one (seed {seed}, session "
               f"{session})", file=sys.stderr)
-    with station_for(station_arg, args.runs_dir, seed, session=session) as station:
+    kind = KINDS.get(stored["procedure"])
+    motion_truth = kind is None or kind.measures_in_motion
+    with station_for(station_arg, args.runs_dir, seed, session=session, motion_truth=motion_truth) as station:
         with open_engine(args.runs_dir, run_id=stored["id"], station=station, listener=display,
                          pause_handler=detach_at_once if args.jsonl else
                          lambda engine: console_pause_handler(engine, display),

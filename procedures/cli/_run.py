@@ -51,9 +51,9 @@ def register(subparsers) -> None:
     parser.set_defaults(handler=run)
 
 
-def check_procedure(name: str, overrides: list[str]) -> None:
+def check_procedure(name: str, overrides: list[str]) -> str:
     """The procedure (a file or a built-in name) and its ``--set`` overrides, validated as ``open_engine`` will:
-    a ``ConfigError`` (one line per problem) before anything is started for the run."""
+    a ``ConfigError`` (one line per problem) before anything is started for the run. Returns its kind's name."""
     from procedures.engine import apply_overrides, load_procedure, resolve_procedure_path
     from procedures.station import ConfigError, InputRefused, read_text_file
 
@@ -63,20 +63,23 @@ def check_procedure(name: str, overrides: list[str]) -> None:
     except InputRefused as exc:
         raise ConfigError([str(exc)]) from None
     if overrides:
-        apply_overrides(path, text, list(overrides))
+        procedure = apply_overrides(path, text, list(overrides))[1]
     else:
-        load_procedure(path, text)
+        procedure = load_procedure(path, text)
+    return procedure.procedure
 
 
 def run(args: argparse.Namespace) -> int:
     from procedures.cli._display import Display
     from procedures.engine import open_engine
+    from procedures.kinds import KINDS
 
-    check_procedure(args.procedure, args.overrides)  # a typo or a bad --set must not start a simulated cell
+    kind = check_procedure(args.procedure, args.overrides)  # a typo or a bad --set must not start a simulated cell
     refuse_read_only(args)  # a store that cannot be written must not start a simulated cell either
     mode = "jsonl" if args.jsonl else "quiet" if args.quiet else "bar"
     display = Display(mode)
-    with station_for(args.station, args.runs_dir, args.seed, args.calibration) as station:
+    with station_for(args.station, args.runs_dir, args.seed, args.calibration,
+                     motion_truth=KINDS[kind].measures_in_motion) as station:
         with open_engine(args.runs_dir, procedure=args.procedure, station=station, listener=display,
                          pause_handler=detach_at_once if args.jsonl else
                          lambda engine: console_pause_handler(engine, display),

@@ -290,6 +290,13 @@ class ProcedureKind(Protocol[P]):
         ...
 
     @property
+    def measures_in_motion(self) -> bool:
+        """Whether the kind measures while the robot moves (a pose stream, a tool still ringing after
+        "done"): a simulated cell started for its run records the robot twin's dense truth (each
+        move's true trajectory), which its analysis compares with; a kind measuring at rest needs none."""
+        ...
+
+    @property
     def history_figures(self) -> tuple[str, ...]:
         """The figures per point ``instrument history`` and the web view's robot history follow (keys of
         the ISO figures, ``rp_l`` ...); empty: the kind's runs are not in a robot's history."""

@@ -95,6 +95,7 @@ class AngleCalibrationKind:
     file_model = AngleCalibration
     result_shape = ResultShape.CALIBRATION
     iso_test_conditions = False
+    measures_in_motion = False
     history_figures = ()
 
     def plan(self, params: AngleParameters, station: StationFile) -> list[Step]:

@@ -132,6 +132,7 @@ class DisplacementCalibrationKind:
     file_model = DisplacementCalibration
     result_shape = ResultShape.CALIBRATION
     iso_test_conditions = False
+    measures_in_motion = False
     history_figures = ()
 
     def plan(self, params: DisplacementParameters, station: StationFile) -> list[Step]:

@@ -102,6 +102,7 @@ class Iso9283PathKind:
     file_model = Iso9283Path
     result_shape = ResultShape.PATH
     iso_test_conditions = False
+    measures_in_motion = True
     history_figures = ()
 
     def plan(self, params: PathParameters, station: StationFile) -> list[Step]:

@@ -86,6 +86,7 @@ class Iso9283StabilisationKind:
     file_model = Iso9283Stabilisation
     result_shape = ResultShape.STABILISATION
     iso_test_conditions = False
+    measures_in_motion = True
     history_figures = ()
 
     def plan(self, params: StabilisationParameters, station: StationFile) -> list[Step]:

@@ -54,6 +54,7 @@ class Iso9283RepeatabilityKind:
     file_model = Iso9283Repeatability
     result_shape = ResultShape.ISO_POSE
     iso_test_conditions = True
+    measures_in_motion = False
     history_figures = ("rp_l", "rp_a", "rp_b", "rp_c", "ap_p")
 
     def plan(self, params: IsoParameters, station: StationFile) -> list[Step]:
