@@ -47,7 +47,9 @@ class _Server:
 
         self.server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
         self.server.daemon_threads = True
-        self.thread = threading.Thread(target=self.server.serve_forever, daemon=True)
+        # shutdown() waits for serve_forever to look at its flag: every 0.05 s rather than the default 0.5 s
+        self.thread = threading.Thread(target=self.server.serve_forever, kwargs={"poll_interval": 0.05},
+                                       daemon=True)
         self.thread.start()
         self.url = f"http://127.0.0.1:{self.server.server_address[1]}"
 
@@ -383,7 +385,21 @@ def test_a_process_that_ends_takes_its_hooks_with_it(mark, tmp_path):
         f"spec = HookSpec(shell='export TEST_MARK={mark}; setsid sleep 300 & sleep 300', timeout_s=60)\n"
         "runner = HookRunner([spec])\n"
         "runner.emit({'event': 'run_finished', 'run_id': 'abc', 'state': 'FINISHED'})\n"
-        "time.sleep(1.0)\n"
+        # exit once both sleeps run (found by their mark, within 10 s), rather than after a fixed second
+        "from pathlib import Path\n"
+        f"marked = b'TEST_MARK={mark}'\n"
+        "def running():\n"
+        "    found = 0\n"
+        "    for entry in Path('/proc').iterdir():\n"
+        "        try:\n"
+        "            found += entry.name.isdigit() and marked in (entry / 'environ').read_bytes().split(b'\\0')\n"
+        "        except OSError:\n"
+        "            pass\n"
+        "    return found\n"
+        "deadline = time.monotonic() + 10\n"
+        "while running() < 2:\n"
+        "    assert time.monotonic() < deadline, 'the hook never started its two sleeps'\n"
+        "    time.sleep(0.02)\n"
         "sys.exit(0)\n"
     )
     started = subprocess.run([sys.executable, "-c", script], timeout=20, capture_output=True, text=True)
