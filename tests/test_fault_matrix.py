@@ -84,11 +84,14 @@ CASES = [
     Case("robot protective stop", "iso", [Fault("robot", "protective_stop", 3)], "paused", "robot"),
     Case("robot emergency stop", "iso", [Fault("robot", "emergency_stop", 3)], "paused", "robot"),
     Case("robot program stopped", "iso", [Fault("robot", "program_stopped", 3)], "failed", "robot"),
-    Case("robot disconnect", "iso", [Fault("robot", "disconnect", 3)], "failed", "robot"),
+    Case("robot disconnect", "iso", [Fault("robot", "disconnect", 3)], "paused", "robot"),
     Case("robot stall, delay, slow", "iso", [Fault("robot", "stall", 2, {"seconds": 1.0}),
                                             Fault("robot", "delay", 4, {"seconds": 1.0}),
                                             Fault("robot", "slow", 6, {"seconds": 0.02})], "recovered"),
     Case("rotary table exception 4", "angle", [Fault("rotary_table", "exception", 3, {"code": 4})], "failed",
+         "rotary_table"),
+    # A fault the run can go on from once the device is back: PAUSED with the typed error, not FAILED.
+    Case("rotary table drops 20 replies", "angle", [Fault("rotary_table", "drop_reply", 3, {"count": 20})], "paused",
          "rotary_table"),
     Case("rotary table transport faults", "angle", [
         Fault("rotary_table", "drop_reply", 1), Fault("rotary_table", "delay", 2, {"seconds": 0.5}),

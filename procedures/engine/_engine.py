@@ -5,8 +5,10 @@ set-up, lets the kind move and measure, commits the sample, and hands the sample
 analysis at the end. It knows no kind by name.
 
 States (``RunState``): QUEUED → RUNNING → (PAUSED ⇄ RUNNING) → FINISHED | FAILED | ABORTED.
-Pauses happen only at safe points (between poses): on request (one Ctrl-C), or when the robot
-reports a protective stop. An abort (two Ctrl-C, SIGTERM/SIGHUP, or the cell) stops the robot and
+Pauses happen only at safe points (between poses): on request (one Ctrl-C), when the robot
+reports a protective stop, or when a device stops answering or loses its connection mid-step
+(``DeviceTimeout``, ``DeviceConnectionError``: the run can go on once it is back, so it is not
+FAILED); the step is then measured again. An abort (two Ctrl-C, SIGTERM/SIGHUP, or the cell) stops the robot and
 the table first, whatever else fails.
 
 Each ``execute()`` is one **session** of the run. A session skips the steps stored as measured
@@ -27,7 +29,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from drivers import DeviceError
+from drivers import ClientLibraryMissing, DeviceConnectionError, DeviceError, DeviceTimeout
 from drivers.robot import EmergencyStop, ProtectiveStop
 from instrument import __version__
 from procedures.engine._dry_run import collapse, plan_problems
@@ -262,6 +264,10 @@ class RunEngine:
                     except (ProtectiveStop, EmergencyStop) as exc:
                         self.station.safe_state()
                         self._pause(f"{type(exc).__name__}: {exc}")  # then retry the same step
+                    except (DeviceTimeout, DeviceConnectionError) as exc:
+                        if isinstance(exc, ClientLibraryMissing):
+                            raise
+                        self._pause_on_device(exc)  # then retry the same step
                 self._log_hook_failures()
                 if self.lease is not None:
                     self.store.renew_lease(self.lease)
@@ -396,6 +402,14 @@ class RunEngine:
         self._check_abort()
         if self._pause_request.is_set():
             self._pause(self._pause_reason)
+
+    def _pause_on_device(self, exc: DeviceError) -> None:
+        """A device stopped answering or lost its connection mid-step: nothing measured is lost and the
+        step can be measured again once it is back, so robot and table are stopped and the run PAUSED
+        with the device's one line and what to do (not FAILED)."""
+        problems = self.station.safe_state()
+        self._pause(f"{exc}; once {exc.device} answers again: instrument resume {self.run_id}"
+                    + ("; " + "; ".join(problems) if problems else ""))
 
     def _pause(self, reason: str) -> None:
         self._pause_request.clear()
