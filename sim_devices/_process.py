@@ -78,7 +78,6 @@ def _child_main(factory_path: str, kwargs: dict[str, Any], conn: Connection, par
     os.setsid()
     _run_ahead_of_the_host(nice)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})  # blocked by the parent for our spawn
     # The parent marks us daemonic (it terminates us if it exits without stopping us), and
     # multiprocessing refuses children to daemonic processes. A host may run twin processes of its
     # own (the cell supervisor); their lifetime is bound to ours by the pipe and parent watch below.
@@ -200,16 +199,18 @@ class TwinProcess:
         process = ctx.Process(target=_child_main, args=(self.factory, self.kwargs, child, os.getpid(), self.nice),
                               daemon=True)
         self._process = process
-        # SIGINT is blocked while the child is spawned: a blocked signal stays blocked across exec, so a
-        # Ctrl-C to the terminal's process group during its start-up (before it has a session of its
-        # own) waits, pending, until the child ignores it and unblocks it (``_child_main``) — no import
-        # traceback from it. In this process a Ctrl-C in that window is only held: the other threads
-        # take it, or this one as soon as the mask is restored (ignoring it here instead lost it).
-        previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        # The child ignores SIGINT from its first instruction (an ignored signal stays ignored across
+        # exec): a Ctrl-C to the terminal's process group during its start-up, before it has a session
+        # of its own, must not print an import traceback from it. (Blocking SIGINT instead would keep
+        # this process's Ctrl-C, but multiprocessing's spawn clears the child's signal mask; a Ctrl-C
+        # in the few milliseconds of the spawn is lost here.)
+        in_main = threading.current_thread() is threading.main_thread()
+        previous = signal.signal(signal.SIGINT, signal.SIG_IGN) if in_main else None
         try:
             process.start()
         finally:
-            signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+            if in_main:
+                signal.signal(signal.SIGINT, previous if previous is not None else signal.SIG_DFL)
         child.close()
         self._conn = parent
 
