@@ -150,7 +150,15 @@ def stop_hook_processes(marker: str, group: int | None = None, grace_s: float = 
         signalled.update(pids)
         return pids
 
-    if not send(signal.SIGTERM) and group is None:
+    def gone() -> bool:
+        # Twice, 50 ms apart: a process between fork and exec (``setsid`` forks) or in the middle of its
+        # exec can read as carrying nothing for a moment, and a single empty look let it escape.
+        if _marked(marker):
+            return False
+        time.sleep(0.05)
+        return not _marked(marker)
+
+    if not send(signal.SIGTERM) and group is None and gone():
         return []
     deadline = time.monotonic() + grace_s
     while time.monotonic() < deadline and _marked(marker):
@@ -158,7 +166,7 @@ def stop_hook_processes(marker: str, group: int | None = None, grace_s: float = 
     for _ in range(20):
         send(signal.SIGKILL)
         time.sleep(0.02)
-        if not _marked(marker):
+        if gone():
             break
         group = None  # killed once; what still carries the marker is found by it
     return sorted(signalled)
