@@ -49,6 +49,22 @@ _LAZY = {**dict.fromkeys(("ask_pause_key", "cell_directory", "console_pause_hand
          "MAX_IMAGE_PIXELS": "_locate", "declared_image_size": "_locate", "ERROR_LOG": "_main", "build_parser": "_main"}
 
 
+def _interrupt_in_disguise(exc: BaseException) -> bool:
+    """A Ctrl-C that a library turned into an error of its own: raised while pydantic-core builds a model's
+    validator (a model class defined during a lazy import), it comes out as ``SchemaError: ... KeyboardInterrupt``;
+    elsewhere as an exception whose cause or context is the KeyboardInterrupt."""
+    seen: set[int] = set()
+    current: BaseException | None = exc
+    while current is not None and id(current) not in seen:
+        seen.add(id(current))
+        if isinstance(current, KeyboardInterrupt):
+            return True
+        if type(current).__name__ == "SchemaError" and "KeyboardInterrupt" in str(current):
+            return True
+        current = current.__cause__ or current.__context__
+    return False
+
+
 def main(argv: list[str] | None = None) -> int:
     """The ``instrument`` command on ``argv`` (default: the process's arguments); returns its exit status.
 
@@ -62,6 +78,11 @@ def main(argv: list[str] | None = None) -> int:
 
             return command(argv)
         except KeyboardInterrupt:
+            print("interrupted", file=sys.stderr)
+            return 130
+        except Exception as exc:
+            if not _interrupt_in_disguise(exc):
+                raise
             print("interrupted", file=sys.stderr)
             return 130
     finally:

@@ -26,6 +26,7 @@ from instrument import __version__
 from procedures.cli import (
     _export,
     _history,
+    _interrupt_in_disguise,
     _locate,
     _report,
     _resume,
@@ -152,6 +153,9 @@ def _handled(args: argparse.Namespace) -> int:
         print("instrument: out of memory", file=sys.stderr)
         return 1
     except Exception as exc:  # a bug: one line for the user, the traceback in the log
+        if _interrupt_in_disguise(exc):
+            print("interrupted", file=sys.stderr)
+            return 130
         where = _log_traceback(args)
         first = (str(exc).splitlines() or [""])[0][:300]
         print(f"instrument: internal error: {type(exc).__name__}: {first} (traceback in {where})", file=sys.stderr)
