@@ -61,6 +61,13 @@ LOOPBACK_BLOCK_ENV = "SIM_LOOPBACK_BLOCK"
 """Environment variable naming the 127.A.B block (``"127.0.7"``) in which twins take their addresses
 (default ``127.0.0``): parallel test workers get disjoint blocks, so their cells never compete."""
 
+STATIC_ROBOT = {"truth_rate": 0.0}
+"""The ``robot`` section of a cell config whose runs measure at rest: the robot twin without its dense
+truth (the true tool at 1 kHz of simulated time, with its structural ring-down, into each move's
+trajectory record). Nothing such a run sees reads it (once a move is done the world holds the settled
+pose), and sampling it is most of the robot twin's CPU while it moves and for up to 3 simulated seconds
+after each move."""
+
 
 def loopback_block() -> str:
     """The ``127.A.B`` block twins bind in (``SIM_LOOPBACK_BLOCK``, default ``127.0.0``)."""

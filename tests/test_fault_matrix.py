@@ -34,8 +34,7 @@ import pytest
 
 from instrument import ARCSEC
 from procedures.station import TruthLog
-from sim_devices.cell import SimCell
-from tests._cells import STATIC_ROBOT
+from sim_devices.cell import STATIC_ROBOT, SimCell
 
 ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.slow

@@ -21,8 +21,7 @@ from instrument.compensation import CalibrationRecord
 from instrument.uncertainty import coverage_study
 from procedures.engine import open_engine, resolve_procedure_path
 from procedures.kinds.iso import coverage_case
-from sim_devices.cell import SimCell
-from tests._cells import STATIC_ROBOT
+from sim_devices.cell import STATIC_ROBOT, SimCell
 
 pytestmark = pytest.mark.slow
 

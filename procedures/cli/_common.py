@@ -258,11 +258,11 @@ def station_for(station: str | None, runs_dir: Path, seed: int, calibration: lis
     if station != "sim":
         yield station
         return
-    from sim_devices.cell import SimCell
+    from sim_devices.cell import STATIC_ROBOT, SimCell
 
     directory = cell_directory(runs_dir)
     cell = SimCell(seed=seed, directory=directory, session=session,
-                   config=None if motion_truth else {"robot": {"truth_rate": 0.0}})
+                   config=None if motion_truth else {"robot": STATIC_ROBOT})
     try:
         cell.start()
     except KeyboardInterrupt:  # Ctrl-C while the twins start: none is left behind
