@@ -34,7 +34,8 @@ from sim_devices.cell import LOOPBACK_BLOCK_ENV
 # pose-stream page) are placed so that they do not run at the same time on the two workers: each is the
 # heaviest real-time load of the suite.
 LONGEST_FIRST = {
-    "test_fault_matrix.py": 240, "test_system_sim.py": 210, "test_dynamic_system.py": 130,
+    "test_system_sim.py": 210, "test_dynamic_system.py": 130, "test_fault_matrix_calibrations.py": 120,
+    "test_fault_matrix_iso.py": 110,
     "test_kill_resume.py": 86, "test_serve_opcua.py": 77, "test_serve_browser.py": 76, "test_cell.py": 59,
     "test_rotary_drivers.py": 51, "test_results_data.py": 44, "test_cli_interrupts.py": 38,
     "test_robot_isolation.py": 37, "test_fuzz_inputs.py": 34, "test_camera_stream.py": 30, "test_robot_abb.py": 29,
@@ -48,7 +49,8 @@ INTEGRATION = {
     "test_gige_pygigevision.py", "test_gige_standalone.py", "test_gige_stream.py",
     "test_camera_stream.py", "test_cell.py", "test_cli_interrupts.py", "test_cli_run_output.py",
     "test_opcua_docs.py", "test_device_settings.py",
-    "test_dynamic_procedures.py", "test_dynamic_system.py", "test_fault_matrix.py", "test_faults_and_process.py",
+    "test_dynamic_procedures.py", "test_dynamic_system.py", "test_fault_matrix_calibrations.py",
+    "test_fault_matrix_iso.py", "test_faults_and_process.py",
     "test_fuzz_inputs.py", "test_interferometer_can.py", "test_interferometer_timing.py", "test_kill_resume.py",
     "test_procedures_hostile_inputs.py", "test_pty_relay.py", "test_robot_dynamic.py", "test_robot_isolation.py",
     "test_robot_ur.py", "test_rotary_drivers.py", "test_rotary_modbus.py", "test_rotary_pipython.py",

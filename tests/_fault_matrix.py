@@ -1,6 +1,8 @@
-"""The fault matrix: every fault kind of every twin's fault plan, injected mid-run through the
-simulated cell's control channel (``SimCell.inject_fault``; the camera twin's laser through its own
-control API), into ``instrument run`` in a child process, exactly as an operator would run it.
+"""The fault matrix's cases and how one is run (tests/test_fault_matrix_*.py: two modules, so that two
+workers share the cases, each on a cell of its own): every fault kind of every twin's fault plan,
+injected mid-run through the simulated cell's control channel (``SimCell.inject_fault``; the camera
+twin's laser through its own control API), into ``instrument run`` in a child process, exactly as an
+operator would run it.
 
 Each case asserts the outcome the run must have — **recovered** (the run finishes by itself),
 **paused** (exit 3, left PAUSED) or **failed** (exit 1, FAILED with a typed error naming device,
@@ -10,8 +12,9 @@ sample agrees with the twins' ground truth (pose, table angle, interferometer di
 Faults that a driver or the engine recovers from are injected one after another into one run
 (each must fire and leave the run going); faults that stop a run get a run of their own.
 
-``FAULT_MATRIX_TABLE=path pytest tests/test_fault_matrix.py`` also writes the table of outcomes
-(the one in docs/reliability.md).
+``FAULT_MATRIX_TABLE=path pytest tests/test_fault_matrix_*.py`` also writes the table of outcomes
+(the one in docs/reliability.md): each module leaves its rows beside it (``path.<part>.json``) and
+rewrites the table from every part found there, in the order of ``CASES``.
 """
 
 from __future__ import annotations
@@ -25,6 +28,8 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -37,8 +42,6 @@ from procedures.station import TruthLog
 from sim_devices.cell import STATIC_ROBOT, SimCell
 
 ROOT = Path(__file__).resolve().parents[1]
-pytestmark = pytest.mark.slow
-
 # Small procedures: each run is 10-18 poses. Retries back off as by default (1 s, then 2 s).
 COMMON = "settle_time_s: 0.05, frames_per_pose: 1"
 PROCEDURES = {
@@ -110,15 +113,19 @@ CASES = [
     Case("cameras starved", "displacement_1mm", [Fault("cameras", "render_delay", 3, {"seconds": 3.0, "count": 3})],
          "recovered"),
 ]
-ROWS: list[dict[str, Any]] = []
 
 
-@pytest.fixture(scope="module")
-def cell(tmp_path_factory):
-    with SimCell(seed=11, directory=tmp_path_factory.mktemp("cell"), time_scale=4.0,
+def cases_on(*procedures: str) -> list[Case]:
+    """The cases that run one of ``procedures`` (keys of ``PROCEDURES``)."""
+    return [case for case in CASES if case.procedure in procedures]
+
+
+@contextmanager
+def fault_matrix_cell(directory: Path) -> Iterator[SimCell]:
+    """The cell the cases run on: seed 11, time scale 4, the robot at rest between moves (no dense truth)."""
+    with SimCell(seed=11, directory=directory, time_scale=4.0,
                  config={"world": {"ack_timeout_s": ACK_TIMEOUT_S}, "robot": STATIC_ROBOT}) as running:
         yield running
-    _write_table()
 
 
 def _committed(db: Path) -> int:
@@ -217,31 +224,39 @@ def _check_datums_joined(results: dict) -> int:
     return joined
 
 
-def _record(case: Case, fault: Fault, outcome: str, detect_s: float | None, lost: int, resumed: bool,
-            note: str = "") -> None:
+def _row(case: Case, index: int, outcome: str, detect_s: float | None, lost: int, resumed: bool) -> dict[str, Any]:
+    fault = case.faults[index]
     params = ", ".join(f"{k}={v}" for k, v in fault.params.items())
     if fault.lasts_s is not None:
         params = f"{fault.lasts_s:g} s"
-    ROWS.append({"device": fault.device, "fault": fault.kind + (f" ({params})" if params else ""),
-                 "outcome": outcome, "detect_s": detect_s, "lost": lost, "resumed": resumed, "note": note})
+    return {"order": [CASES.index(case), index], "device": fault.device,
+            "fault": fault.kind + (f" ({params})" if params else ""), "outcome": outcome, "detect_s": detect_s,
+            "lost": lost, "resumed": resumed, "note": ""}
 
 
-def _write_table() -> None:
+def write_table(part: str, rows: list[dict[str, Any]]) -> None:
+    """Print this module's rows; with ``FAULT_MATRIX_TABLE``, leave them beside the table and rewrite the
+    table from every module's rows found there."""
+    target = os.environ.get("FAULT_MATRIX_TABLE")
+    if target:
+        Path(f"{target}.{part}.json").write_text(json.dumps(rows), encoding="utf-8")
+        rows = [row for found in sorted(Path(target).parent.glob(Path(target).name + ".*.json"))
+                for row in json.loads(found.read_text(encoding="utf-8"))]
+    rows = sorted(rows, key=lambda row: row["order"])
     lines = ["| device | fault | outcome | time to outcome (s) | lost samples | resumed to FINISHED |",
              "|---|---|---|---|---|---|"]
-    for row in ROWS:
+    for row in rows:
         detect = "—" if row["detect_s"] is None else f"{row['detect_s']:.1f}"
         lines.append(f"| {row['device']} | {row['fault']} | {row['outcome']}{row['note']} | {detect} | {row['lost']} "
                      f"| {'yes' if row['resumed'] else 'not needed'} |")
     print("\n" + "\n".join(lines))
-    target = os.environ.get("FAULT_MATRIX_TABLE")
     if target:
         Path(target).write_text("\n".join(lines) + "\n", encoding="utf-8")
 
 
-@pytest.mark.timeout(400)
-@pytest.mark.parametrize("case", CASES, ids=[case.name for case in CASES])
-def test_fault_mid_run_then_resume_to_finished(cell, tmp_path, case):
+def run_case(cell: SimCell, tmp_path: Path, case: Case) -> list[dict[str, Any]]:
+    """Run ``case`` on ``cell`` (its runs under ``tmp_path``), assert its outcome and what resume and the
+    twins' truth say; returns its rows of the table."""
     _clear(cell)
     runs = tmp_path / "runs"
     procedure = tmp_path / "procedure.yaml"
@@ -304,7 +319,6 @@ def test_fault_mid_run_then_resume_to_finished(cell, tmp_path, case):
     if case.procedure.startswith("displacement"):
         reestablished = [e for e in events if e["kind"] == "datum"]
         assert _check_datums_joined(json.loads(run["results"])) == len({e["message"] for e in reestablished})
-    for fault, seconds in zip(case.faults, detect):
-        _record(case, fault, case.outcome, seconds, lost, resumed, "")
     # ur_rtde runs in a worker process (drivers/robot): a client that crashes must not take the run with it.
     assert not died, f"outcome recorded ({state}: {reason}), but the run process died by {signal.Signals(died).name}"
+    return [_row(case, index, case.outcome, seconds, lost, resumed) for index, seconds in enumerate(detect)]
