@@ -11,7 +11,10 @@ the controller started) and simulated time ``k · period · time_scale`` (motion
 immutable ``CycleState`` (joints, poses, speeds, currents, modes, a copy of every register) and
 hands it to the RTDE streams, which pack each client's recipe from it. A late cycle does not skip
 its slot: the thread steps and sends every slot it missed, back to back (up to ``MAX_CATCH_UP``
-slots, 1 s; a longer stall resynchronises and is counted in ``skipped_cycles``).
+slots, 1 s). A longer stall resynchronises and is counted in ``skipped_cycles``: its slots are not
+sent, but the arm's physics is still advanced through them in steps of about 10 ms of simulated time
+(a real arm does not stop while a host sleeps; one step across the gap would feed the servos a chord's
+velocity and leave them ringing tens of µm off the path).
 
 What the controller reports and what is true
 --------------------------------------------
@@ -87,6 +90,10 @@ MID_MOVE_FAULTS = (FaultKind.PROTECTIVE_STOP, FaultKind.EMERGENCY_STOP, FaultKin
 # Slots a late cycle thread makes up for (1 s); beyond that it resynchronises, and the motion jumps
 # ahead by the gap. A loaded host delays a cycle by far less, but repeatedly: it must catch up.
 MAX_CATCH_UP = 500
+# Through a longer stall the physics advances in steps of about this many simulated seconds, and at most
+# RESYNC_MAX_STEPS of them (a stall of minutes must not cost the cycle thread seconds of CPU).
+RESYNC_STEP = 0.01
+RESYNC_MAX_STEPS = 400
 DONE_AFTER_CYCLES = 2  # "done" goes out this many cycles (4 ms) after the final pose was first streamed
 
 # A coarse UR5e mass model for the joint currents: link masses (kg) at the middle of each link,
@@ -487,6 +494,7 @@ class ArmController:
             if behind > MAX_CATCH_UP:  # a long stall (SIGSTOP, a frozen VM): resynchronise, and say so
                 self.skipped_cycles += behind
                 self.log(f"controller cycle resynchronised after {behind} missed cycles")
+                self._advance_through_stall(slot, slot + behind)
                 slot += behind
             elif behind > 0:
                 self.late_cycles += 1
@@ -504,16 +512,7 @@ class ArmController:
         """Advance to cycle ``slot``, publish its state to the listeners; returns it."""
         publish = None
         with self.changed:
-            t_prev = self.t_sim
-            self.cycle = slot
-            self.t_sim = t = slot * self.period * self.config.time_scale
-            h = t - t_prev
-            run = self.run
-            # ndarray.any() rather than np.any(): the check runs 500 times a second
-            at_rest = (run is None and not self.qd.any() and not self.qdd.any() and not self.error.any()
-                       and not self.error_rate.any() and not self.recorder.is_open)
-            if not at_rest and h > 0:
-                self._advance(run, t, h)
+            self._physics_to(slot)
             now = time.monotonic()
             if (self.run is not None and self.run.phase in ("moving", "settling")
                     and now - self._last_publish >= self.config.world_publish_period):
@@ -526,6 +525,27 @@ class ArmController:
         for listener in self._listeners:
             listener(state)
         return state
+
+    def _physics_to(self, slot: int) -> None:
+        """Joints, servos, motion and truth from the current cycle to cycle ``slot`` (lock held)."""
+        t_prev = self.t_sim
+        self.cycle = slot
+        self.t_sim = t = slot * self.period * self.config.time_scale
+        h = t - t_prev
+        run = self.run
+        # ndarray.any() rather than np.any(): the check runs 500 times a second
+        at_rest = (run is None and not self.qd.any() and not self.qdd.any() and not self.error.any()
+                   and not self.error_rate.any() and not self.recorder.is_open)
+        if not at_rest and h > 0:
+            self._advance(run, t, h)
+
+    def _advance_through_stall(self, first: int, last: int) -> None:
+        """The physics through slots ``first`` … ``last`` (excluded) of a stall, nothing published."""
+        per_step = max(1, round(RESYNC_STEP / (self.period * self.config.time_scale)))
+        stride = max(per_step, math.ceil((last - first) / RESYNC_MAX_STEPS))
+        with self.changed:
+            for slot in range(first, last, stride):
+                self._physics_to(slot)
 
     def _advance(self, run: MoveRun | None, t: float, h: float) -> None:
         """Target along the motion, servo error, actual TCP: from the previous cycle to time ``t``."""
