@@ -47,6 +47,25 @@ def _procedure(tmp_path: Path, kind: str, **parameters) -> Path:
     return path
 
 
+def _robot_stalls(cell: SimCell) -> int:
+    """Times the host held the robot twin's cycle back by 50 ms or more (the twin counts them)."""
+    return int(cell.forward("robot", "state")["stalls"])
+
+
+def _run_in_real_time(cell: SimCell, tmp_path: Path, procedure: Path, tries: int = 3) -> dict:
+    """``_run``, repeated when the host stalled the robot twin by 50 ms or more during the run (the twin
+    counts it): the cameras then saw the arm frozen while its physics went on (a ring-down missed, or
+    seen late), which no real cell shows. Any other failure fails at once; three stalled tries fail too."""
+    for attempt in range(1, tries + 1):
+        before = _robot_stalls(cell)
+        run = _run(tmp_path / f"try-{attempt}", procedure, cell.station_path)
+        stalls = _robot_stalls(cell) - before
+        if stalls == 0:
+            return run
+        print(f"try {attempt}: the host stalled the robot twin {stalls} times by 50 ms or more; measuring again")
+    raise AssertionError(f"the host stalled the robot twin by 50 ms or more in each of {tries} runs")
+
+
 def _run(tmp_path: Path, procedure: Path, station: Path) -> dict:
     with open_engine(tmp_path / "runs", procedure=procedure, station=station) as engine:
         state = engine.execute()
@@ -60,11 +79,12 @@ def _run(tmp_path: Path, procedure: Path, station: Path) -> dict:
 
 
 def test_stabilisation_against_the_twins_truth(cell, tmp_path):
-    run = _run(tmp_path, _procedure(tmp_path, "iso9283_stabilisation", speeds_percent=[100], band_um=10.0,
-                                    window_s=0.4), cell.station_path)
+    run = _run_in_real_time(cell, tmp_path, _procedure(tmp_path, "iso9283_stabilisation", speeds_percent=[100],
+                                                       band_um=10.0, window_s=0.4))
     results = run["results"]
     assert results["simulated"] and len(results["moves"]) == 2
     period = 1.0 / RATE
+    print([(m["key"], m["true"]["dense"]) for m in results["moves"]])
     # A real ring-down: the 5 kg arrival at 1 m/s overshoots by µm and takes time to enter 10 µm. Judged on
     # the dense (1 kHz) truth: at the stream's 150 Hz instants, which fall wherever the host's timing puts
     # them, one arrival may show little of its peak, and two arrivals in a row may both.
@@ -88,9 +108,9 @@ def test_stabilisation_against_the_twins_truth(cell, tmp_path):
 
 
 def test_path_accuracy_against_the_twins_truth(cell, tmp_path):
-    run = _run(tmp_path, _procedure(tmp_path, "iso9283_path", speeds_percent=[50], hold_s=0.1,
-                                    rate_hz=50.0, circle_radius_mm=10.0,
-                                    settle_time_s=0.2, frames_per_pose=1), cell.station_path)
+    run = _run_in_real_time(cell, tmp_path, _procedure(tmp_path, "iso9283_path", speeds_percent=[50], hold_s=0.1,
+                                                       rate_hz=50.0, circle_radius_mm=10.0,
+                                                       settle_time_s=0.2, frames_per_pose=1))
     setting = run["results"]["settings"][0]
     for part in ("leg_1", "leg_2", "circle"):
         figures = setting[part]

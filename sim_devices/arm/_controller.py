@@ -14,7 +14,8 @@ its slot: the thread steps and sends every slot it missed, back to back (up to `
 slots, 1 s). A longer stall resynchronises and is counted in ``skipped_cycles``: its slots are not
 sent, but the arm's physics is still advanced through them in steps of about 10 ms of simulated time
 (a real arm does not stop while a host sleeps; one step across the gap would feed the servos a chord's
-velocity and leave them ringing tens of µm off the path).
+velocity and leave them ringing tens of µm off the path). Every lag of ``STALL_CYCLES`` (50 ms) or more
+is counted in ``stalls``: the other twins saw the arm frozen that long, which a real cell never shows.
 
 What the controller reports and what is true
 --------------------------------------------
@@ -90,6 +91,8 @@ MID_MOVE_FAULTS = (FaultKind.PROTECTIVE_STOP, FaultKind.EMERGENCY_STOP, FaultKin
 # Slots a late cycle thread makes up for (1 s); beyond that it resynchronises, and the motion jumps
 # ahead by the gap. A loaded host delays a cycle by far less, but repeatedly: it must catch up.
 MAX_CATCH_UP = 500
+# A cycle this many slots (50 ms) late is counted as a stall: the other twins saw the arm frozen that long.
+STALL_CYCLES = 25
 # Through a longer stall the physics advances in steps of about this many simulated seconds, and at most
 # RESYNC_MAX_STEPS of them (a stall of minutes must not cost the cycle thread seconds of CPU).
 RESYNC_STEP = 0.01
@@ -221,6 +224,7 @@ class ArmController:
         self.t_sim = 0.0
         self.skipped_cycles = 0
         self.late_cycles = 0
+        self.stalls = 0  # times the cycle found itself STALL_CYCLES or more behind (the world froze that long)
         self.payload_mass = 0.0
         self.payload_cog = np.zeros(3)
         self.payload_inertia = np.zeros(6)
@@ -484,6 +488,7 @@ class ArmController:
     def _run(self) -> None:
         period = self.period
         slot = 0
+        behind_before = 0
         while not self._stop.is_set():
             due = self._wall0 + slot * period
             delay = due - time.monotonic()
@@ -498,6 +503,9 @@ class ArmController:
                 slot += behind
             elif behind > 0:
                 self.late_cycles += 1
+            if behind >= STALL_CYCLES > behind_before:
+                self.stalls += 1  # once per stall, not per slot made up
+            behind_before = behind
             try:
                 self.step(slot)
             except Exception as exc:  # never let the controller die silently
@@ -865,6 +873,7 @@ class ArmController:
                 "payload_cog": self.payload_cog.tolist(),
                 "late_cycles": self.late_cycles,
                 "skipped_cycles": self.skipped_cycles,
+                "stalls": self.stalls,
             }
 
 
