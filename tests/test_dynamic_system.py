@@ -20,6 +20,7 @@ from procedures.engine import open_engine
 from procedures.store import RunState
 from sim_devices.camera import IDEAL_OPTICS
 from sim_devices.cell import SimCell
+from sim_devices.trajectory import TrajectoryLog
 from sim_devices.world import EXACT_MOUNTS
 
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(300)]
@@ -52,18 +53,36 @@ def _robot_stalls(cell: SimCell) -> int:
     return int(cell.forward("robot", "state")["stalls"])
 
 
-def _run_in_real_time(cell: SimCell, tmp_path: Path, procedure: Path, tries: int = 3) -> dict:
-    """``_run``, repeated when the host stalled the robot twin by 50 ms or more during the run (the twin
-    counts it): the cameras then saw the arm frozen while its physics went on (a ring-down missed, or
-    seen late), which no real cell shows. Any other failure fails at once; three stalled tries fail too."""
+def _done_delays(cell: SimCell) -> list[tuple[float, float]]:
+    """Per move of the cell: (its done signal, s of controller time, how long after its encoders settled
+    the done came). The twin holds done until every other twin shows the settled pose (so that no grab
+    after done is stale); a loaded host makes that late, where a real controller signals at once."""
+    log = TrajectoryLog(cell.truth_path.parent / "trajectories")
+    return [(r.meta["done_timestamp"], r.meta["done_timestamp"] - r.meta["end_timestamp"])
+            for r in log.records() if "done_timestamp" in r.meta and "end_timestamp" in r.meta]
+
+
+def _signalled_at_once(cell: SimCell, moves: list[dict]) -> list[dict]:
+    """The measured arrivals whose done signal came within 50 ms of their encoders settling."""
+    delays = _done_delays(cell)
+    return [m for m in moves if any(abs(done - m["t_signal"]) < 0.01 and delay < 0.05 for done, delay in delays)]
+
+
+def _run_in_real_time(cell: SimCell, tmp_path: Path, procedure: Path, usable=lambda run: True,
+                      tries: int = 3) -> dict:
+    """``_run``, repeated when the host held the robot twin's cycle back by 50 ms or more during the run
+    (the twin counts it: the cameras saw the arm frozen while its physics went on, which no real cell
+    shows), or when ``usable(run)`` says the run cannot show what the test checks. Any other failure
+    fails at once; three unusable tries in a row fail too."""
     for attempt in range(1, tries + 1):
         before = _robot_stalls(cell)
         run = _run(tmp_path / f"try-{attempt}", procedure, cell.station_path)
         stalls = _robot_stalls(cell) - before
-        if stalls == 0:
+        if stalls == 0 and usable(run):
             return run
-        print(f"try {attempt}: the host stalled the robot twin {stalls} times by 50 ms or more; measuring again")
-    raise AssertionError(f"the host stalled the robot twin by 50 ms or more in each of {tries} runs")
+        print(f"try {attempt}: the host held the robot twin back ({stalls} stalls of 50 ms or more, or every "
+              f"done signal late); measuring again")
+    raise AssertionError(f"the host held the robot twin back in each of {tries} runs")
 
 
 def _run(tmp_path: Path, procedure: Path, station: Path) -> dict:
@@ -80,16 +99,18 @@ def _run(tmp_path: Path, procedure: Path, station: Path) -> dict:
 
 def test_stabilisation_against_the_twins_truth(cell, tmp_path):
     run = _run_in_real_time(cell, tmp_path, _procedure(tmp_path, "iso9283_stabilisation", speeds_percent=[100],
-                                                       band_um=10.0, window_s=0.4))
+                                                       band_um=10.0, window_s=0.4),
+                            usable=lambda run: bool(_signalled_at_once(cell, run["results"]["moves"])))
     results = run["results"]
     assert results["simulated"] and len(results["moves"]) == 2
     period = 1.0 / RATE
-    print([(m["key"], m["true"]["dense"]) for m in results["moves"]])
+    print([(m["key"], m["t_signal"], m["true"]["dense"]) for m in results["moves"]], _done_delays(cell)[-4:])
     # A real ring-down: the 5 kg arrival at 1 m/s overshoots by µm and takes time to enter 10 µm. Judged on
     # the dense (1 kHz) truth: at the stream's 150 Hz instants, which fall wherever the host's timing puts
-    # them, one arrival may show little of its peak, and two arrivals in a row may both.
+    # them, one arrival may show little of its peak, and two arrivals in a row may both. Only where the
+    # done signal came as the encoders settled: a done held back by a loaded host comes after the ring-down.
     assert any(m["true"]["dense"]["overshoot"] > 3e-6 and m["true"]["dense"]["stabilisation_time"] > period
-               for m in results["moves"])
+               for m in _signalled_at_once(cell, results["moves"]))
     for move in results["moves"]:
         true = move["true"]
         print(f"{move['key']}: t_s {_ms(move['stabilisation_time'])} ms (true {_ms(true['stabilisation_time'])}, "
