@@ -64,8 +64,16 @@ def test_live_page_follows_a_simulated_run_without_reloading(browser, tmp_path):
             # The three latest frames, each with its two fitted stripe lines and the cross marked.
             page.wait_for_function("document.querySelectorAll('#frames svg line.stripe').length === 6", timeout=60_000)
             assert page.locator("#frames svg circle.cross").count() == 3
-            image = page.locator("#frames svg image").first.get_attribute("href")
-            answer = page.request.get(endpoints["web"].rstrip("/") + image)
+            # The image the page shows is served, as a PNG. Under load the run may move on between reading
+            # the page and asking: the older frames are removed then (404), and the page must have moved on
+            # to newer ones (a page left showing removed frames times out here), which are asked for instead.
+            for _ in range(5):
+                image = page.locator("#frames svg image").first.get_attribute("href")
+                answer = page.request.get(endpoints["web"].rstrip("/") + image)
+                if answer.status != 404:
+                    break
+                page.wait_for_function("href => document.querySelector('#frames svg image').getAttribute('href')"
+                                       " !== href", arg=image, timeout=30_000)
             assert answer.status == 200 and answer.headers["content-type"] == "image/png"
 
             page.wait_for_function("document.querySelector('#state .state').textContent === 'FINISHED'",
