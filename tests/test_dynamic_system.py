@@ -104,13 +104,14 @@ def test_stabilisation_against_the_twins_truth(cell, tmp_path):
     results = run["results"]
     assert results["simulated"] and len(results["moves"]) == 2
     period = 1.0 / RATE
-    print([(m["key"], m["t_signal"], m["true"]["dense"]) for m in results["moves"]], _done_delays(cell)[-4:])
+    prompt = _signalled_at_once(cell, results["moves"])
+    print([(m["key"], m["t_signal"], m["true"]["dense"]) for m in results["moves"]], [m["key"] for m in prompt])
     # A real ring-down: the 5 kg arrival at 1 m/s overshoots by µm and takes time to enter 10 µm. Judged on
     # the dense (1 kHz) truth: at the stream's 150 Hz instants, which fall wherever the host's timing puts
     # them, one arrival may show little of its peak, and two arrivals in a row may both. Only where the
     # done signal came as the encoders settled: a done held back by a loaded host comes after the ring-down.
     assert any(m["true"]["dense"]["overshoot"] > 3e-6 and m["true"]["dense"]["stabilisation_time"] > period
-               for m in _signalled_at_once(cell, results["moves"]))
+               for m in prompt)
     for move in results["moves"]:
         true = move["true"]
         print(f"{move['key']}: t_s {_ms(move['stabilisation_time'])} ms (true {_ms(true['stabilisation_time'])}, "

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import itertools
 import math
-import threading
 import time
 
 import numpy as np
@@ -107,21 +106,15 @@ def test_move_path_refuses_overlapping_blends_before_sending(twin, robot):
     assert len(twin.call("events")) == events
 
 
-def _full_circle(twin, robot, during=None) -> None:
-    """A full circle of 30 mm radius at 0.08 m/s; ``during()`` runs in a thread as the circle starts."""
+def test_move_circular_keeps_the_true_tool_on_the_circle(twin, robot):
     radius = 0.03
     centre = REFERENCE + [0.05, 0.0, 0.0, 0.0, 0.0, 0.0]
     start, far = centre - [radius, 0, 0, 0, 0, 0], centre + [radius, 0, 0, 0, 0, 0]
     via_1, via_2 = centre + [0, radius, 0, 0, 0, 0], centre - [0, radius, 0, 0, 0, 0]
     robot.move_linear(start)
     time.sleep(0.5)  # that move's ring-down dies out (its record ends when the next move starts)
-    helper = threading.Thread(target=during) if during else None
-    if helper:
-        helper.start()
     robot.move_circular(np.array([via_1, via_2]), np.array([far, start]), speed=0.08, acceleration=1.0,
                         blend_radius=0.001)
-    if helper:
-        helper.join(timeout=10.0)
     done = robot.last_move_done_time()
     np.testing.assert_allclose(robot.tcp_pose()[:3], start[:3], atol=1e-7)  # a full circle: back at the start
     record = last_record(twin)
@@ -134,7 +127,7 @@ def _full_circle(twin, robot, during=None) -> None:
     # the acceleration changes (start, blend, stop) the servos ring a few µm more, also out of the plane.
     speed = np.linalg.norm(np.diff(commanded, axis=0), axis=1) / np.diff(record.time)
     cruising = np.r_[False, np.abs(speed - 0.08) < 1e-3]
-    assert np.sum(cruising) > 1000 if during is None else np.sum(cruising) > 100
+    assert np.sum(cruising) > 1000
     off = np.linalg.norm(true - centre[:3], axis=1) - radius
     assert np.max(np.abs(off[cruising])) < 6e-6 and np.max(np.abs(true[cruising, 2] - centre[2])) < 2e-6
     assert np.max(np.abs(off)) < 15e-6 and np.max(np.abs(true[:, 2] - centre[2])) < 15e-6
@@ -142,10 +135,6 @@ def _full_circle(twin, robot, during=None) -> None:
     angle = np.unwrap(np.arctan2(commanded[:, 1] - centre[1], commanded[:, 0] - centre[0]))
     assert np.ptp(angle) == pytest.approx(2 * np.pi, abs=1e-3)
     assert done is not None and done == pytest.approx(record.meta["done_timestamp"], abs=0.03)
-
-
-def test_move_circular_keeps_the_true_tool_on_the_circle(twin, robot):
-    _full_circle(twin, robot)
 
 
 def test_done_and_is_steady_come_before_the_true_tool_has_settled(twin, robot):

@@ -88,8 +88,9 @@ SAFETY_BIT_STOPPED_DUE_TO_SAFETY = 1 << 10
 JOINT_RUNNING_MODE = 253
 MID_MOVE_FAULTS = (FaultKind.PROTECTIVE_STOP, FaultKind.EMERGENCY_STOP, FaultKind.PROGRAM_STOPPED,
                    FaultKind.DISCONNECT)
-# Slots a late cycle thread makes up for (1 s); beyond that it resynchronises, and the motion jumps
-# ahead by the gap. A loaded host delays a cycle by far less, but repeatedly: it must catch up.
+# Slots a late cycle thread makes up for (1 s); beyond that it resynchronises: the slots are not sent,
+# and the physics goes through the gap (``_advance_through_stall``). A loaded host delays a cycle by far
+# less, but repeatedly: it must catch up.
 MAX_CATCH_UP = 500
 # A cycle this many slots (50 ms) late is counted as a stall: the other twins saw the arm frozen that long.
 STALL_CYCLES = 25
