@@ -98,6 +98,10 @@ STALL_CYCLES = 25
 # RESYNC_MAX_STEPS of them (a stall of minutes must not cost the cycle thread seconds of CPU).
 RESYNC_STEP = 0.01
 RESYNC_MAX_STEPS = 400
+# At rest, with no listener that needs every cycle (no RTDE connection), the cycle thread wakes this
+# often (s) and reports one cycle for the slots since (nothing moves, nobody reads them): an idle cell's
+# robot twin cost an eighth of a core at 500 wake-ups a second.
+QUIET_PERIOD = 0.02
 DONE_AFTER_CYCLES = 2  # "done" goes out this many cycles (4 ms) after the final pose was first streamed
 
 # A coarse UR5e mass model for the joint currents: link masses (kg) at the middle of each link,
@@ -249,6 +253,8 @@ class ArmController:
         self.visits: list[dict[str, Any]] = []  # every settled attained pose (truth, for tests)
         self.events: list[str] = []  # what the controller did that a log would show
         self._listeners: list[Callable[[CycleState], None]] = []
+        self._cycle_needs: list[Callable[[], bool] | None] = []  # per listener: does it need every cycle now?
+        self._cycle_wake = threading.Event()  # ends a quiet wait at once (a motion starts)
         self._kinematic_fields: dict[str, Any] | None = None
         self._currents_now = np.zeros(6)
         self.current = self._cycle_state()
@@ -282,9 +288,20 @@ class ArmController:
         with self.lock:
             self.recorder.close()
 
-    def add_cycle_listener(self, listener: Callable[[CycleState], None]) -> None:
-        """``listener(state)`` on the cycle thread for every cycle (keep it short)."""
+    def add_cycle_listener(self, listener: Callable[[CycleState], None],
+                           needs_cycles: Callable[[], bool] | None = None) -> None:
+        """``listener(state)`` on the cycle thread for every cycle (keep it short).
+
+        ``needs_cycles()`` (cheap, any thread) says whether the listener needs every cycle now (the
+        RTDE streams: while a client is connected); while no listener does and the arm rests, the
+        cycle runs quiet (``QUIET_PERIOD``). Without it the listener always needs every cycle. A
+        listener that starts needing cycles calls ``wake_cycle()``."""
         self._listeners.append(listener)
+        self._cycle_needs.append(needs_cycles)
+
+    def wake_cycle(self) -> None:
+        """End a quiet wait now: a listener needs every cycle again."""
+        self._cycle_wake.set()
 
     def sim_time(self) -> float:
         """Simulated seconds of the latest cycle."""
@@ -349,6 +366,7 @@ class ArmController:
                     "attained_flange": matrix_to_pose6(planned).tolist(),
                     "payload": self.payload_mass})
             self.changed.notify_all()
+        self._cycle_wake.set()
         self.world.announce(flange_pose=planned)  # the cameras may render the end pose meanwhile
         return motion
 
@@ -491,6 +509,15 @@ class ArmController:
         slot = 0
         behind_before = 0
         while not self._stop.is_set():
+            if self._quiet():
+                self._cycle_wake.wait(QUIET_PERIOD)
+                self._cycle_wake.clear()
+                # Nothing moved and nobody read the slots since: the clock jumps to now, one report.
+                slot = max(slot, int((time.monotonic() - self._wall0) / period))
+                behind_before = 0
+                self.step(slot)
+                slot += 1
+                continue
             due = self._wall0 + slot * period
             delay = due - time.monotonic()
             if delay > 0:
@@ -516,6 +543,12 @@ class ArmController:
                 # Making up slots back to back would take the lock again at once, every time: let the
                 # finisher (and the servers) have it between two of them, or a late cycle starves them.
                 time.sleep(0)
+
+    def _quiet(self) -> bool:
+        """At rest (no motion, nothing ringing, no record open) and no listener needs every cycle."""
+        return (self.run is None and not self._finishing and not self.recorder.is_open
+                and not self.qd.any() and not self.qdd.any() and not self.error.any() and not self.error_rate.any()
+                and not any(needs is None or needs() for needs in self._cycle_needs))
 
     def step(self, slot: int) -> CycleState:
         """Advance to cycle ``slot``, publish its state to the listeners; returns it."""

@@ -202,11 +202,12 @@ class RTDEStreams:
         self._connections: list[RTDEConnection] = []
         self._lock = threading.Lock()
         self.packages = 0
-        controller.add_cycle_listener(self.on_cycle)
+        controller.add_cycle_listener(self.on_cycle, needs_cycles=lambda: bool(self._connections))
 
     def add(self, connection: RTDEConnection) -> None:
         with self._lock:
             self._connections = [*self._connections, connection]
+        self.c.wake_cycle()  # its replies go out with the cycles: no quiet wait now
 
     def remove(self, connection: RTDEConnection) -> None:
         with self._lock:
