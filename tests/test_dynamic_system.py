@@ -122,7 +122,10 @@ def test_stabilisation_against_the_twins_truth(cell, tmp_path):
         # within 2 µm, or within the expanded (k = 2) uncertainty the instrument states for it when that is
         # wider (a loaded host jitters the cameras' and the robot's clocks, and the uncertainty says so)
         assert abs(move["overshoot"] - true["overshoot"]) <= max(2e-6, 2 * move["u_overshoot"])
-        assert abs(move["stabilisation_time"] - true["dense"]["stabilisation_time"]) <= period
+        # The stream sees the entry into the band at its first instant after it: up to one period later,
+        # and the interval between two instants stretches by the host's jitter (measured 6.76 ms against a
+        # 6.67 ms period in a loaded run): 1 ms is allowed for that.
+        assert abs(move["stabilisation_time"] - true["dense"]["stabilisation_time"]) <= period + 1e-3
         # The 1 kHz truth peaks higher than any 150 Hz sampling of it can show (measured here: 9.6 µm dense
         # vs 6.4 µm at the stream's instants): the overshoot is judged at the stream's own instants.
         assert true["dense"]["overshoot"] >= true["overshoot"] - 0.1e-6
