@@ -50,13 +50,10 @@ from sim_devices.interferometer._head import InterferometerHead
 FEED_FAULTS = (FaultKind.BEAM_BREAK, FaultKind.STALL, FaultKind.DROP_REPLY, FaultKind.BAD_CRC,
                FaultKind.GARBAGE, FaultKind.DISCONNECT, FaultKind.DELAY)
 BATCH = 0.005  # s: how far past a due sample the head's clock thread sleeps (see _run)
-IDLE_BATCH = 0.05  # s: the same while no transport has a listener (nothing is framed then, see _run)
 
 
 class Transport(Protocol):
     def send_frame(self, can_id: int, data: bytes, timestamp: float) -> None: ...
-
-    def listening(self) -> bool: ...
 
     def send_garbage(self, junk: bytes) -> None: ...
 
@@ -115,24 +112,14 @@ class InterferometerDevice:
         environment_every = max(1, round(self.layout.sample_rate / self.layout.environment_rate))
         origin_mono = time.monotonic()
         tick = 0
-        heard_from: float | None = None  # since when a transport has had a listener
         while not self._stop.is_set():
             due = origin_mono + tick * period
             now = time.monotonic()
-            # Nobody on the bus (no socketcand client in raw mode, the slcan channel closed): the head
-            # keeps its clock, counter, beam and faults, but frames nothing, and wakes less often (a
-            # simulated cell idles most of its life; framing 1000 samples a second for nobody cost
-            # a seventh of a core). Commands come only from a listener.
-            listening = any(transport.listening() for transport in self.transports.values())
-            if listening and heard_from is None:
-                heard_from = now  # the ticks due before a listener came stay unheard (no stale frames)
-            elif not listening:
-                heard_from = None
             if due > now:
                 # Past the next sample by one batch: the samples due meanwhile go out together, each
                 # stamped with its own time on the bus (a Python thread waking at 1 kHz costs a tenth
                 # of a core; a host reads CAN frames in bursts from its kernel's queue anyway).
-                time.sleep(due - now + (BATCH if listening else IDLE_BATCH))
+                time.sleep(due - now + BATCH)
                 continue
             if now - due > self.config.max_catch_up:  # far behind (host starved): these samples are lost
                 skipped = int((now - due) / period)
@@ -150,24 +137,12 @@ class InterferometerDevice:
                 continue
             if tick % status_every == 0:
                 self.head.refraction_ratio = self.environment.refraction_ratio(self.environment.conditions())
-            if heard_from is None or due < heard_from:
-                self._unheard_tick(tick % environment_every == 0)
-                tick += 1
-                continue
             self._sample(due)
             if tick % status_every == 0:
                 self._send_status(due)
             if tick % environment_every == 0:
                 self._send_environment()
             tick += 1
-
-    def _unheard_tick(self, environment_due: bool) -> None:
-        """A sample tick with no listener: counters and the beam's count go on, nothing is framed."""
-        self.head.observe(self._on_bus_at if self._on_bus_at is not None else time.monotonic())
-        self._counter = (self._counter + 1) & 0xFF
-        self._count("produced")
-        if environment_due:
-            self._environment_cycle = (self._environment_cycle + 1) & 0x0F
 
     def _sample(self, now: float) -> None:
         reading = self.head.read(now)

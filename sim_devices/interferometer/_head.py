@@ -105,17 +105,18 @@ class InterferometerHead:
     def read(self, now_monotonic: float) -> HeadReading:
         """One sample at ``now_monotonic``: noise drawn, count lost if the beam is."""
         with self._lock:
-            beam_ok, along = self._follow_beam_locked(now_monotonic)
+            position = self._position
+            beam_ok = self._beam_ok_locked(now_monotonic)
+            along = float(self.beam_direction @ position)
+            if not beam_ok:
+                self.datum_set = False  # the fringe count is lost with the beam
+            elif not self._beam_was_ok:
+                self._reference = along  # counting restarts where the beam came back
+            self._beam_was_ok = beam_ok
             signal = self._signal_locked() if now_monotonic >= self._blocked_until else 0.0
             noise = float(self._noise_rng.normal(0.0, self.config.noise_std)) if self.config.noise_std else 0.0
             displacement = (1.0 + self.scale_error) * self.refraction_ratio * (along - self._reference) + noise
             return HeadReading(displacement if beam_ok else 0.0, beam_ok, self.datum_set and beam_ok, signal)
-
-    def observe(self, now_monotonic: float) -> None:
-        """The head's count at ``now_monotonic`` without a sample (nobody reads the bus): lost with the
-        beam and restarted where it comes back, as ``read`` does, but no noise is drawn."""
-        with self._lock:
-            self._follow_beam_locked(now_monotonic)
 
     def status(self, now_monotonic: float) -> tuple[bool, bool, float]:
         """``(beam_ok, datum_set, signal)`` without drawing a sample (for the heartbeat)."""
@@ -156,16 +157,6 @@ class InterferometerHead:
         signal = 0.95 * float(np.exp(-(np.linalg.norm(lateral) / self.config.lateral_range) ** 2))
         self._signal_cache = (key, signal)
         return signal
-
-    def _follow_beam_locked(self, now_monotonic: float) -> tuple[bool, float]:
-        beam_ok = self._beam_ok_locked(now_monotonic)
-        along = float(self.beam_direction @ self._position)
-        if not beam_ok:
-            self.datum_set = False  # the fringe count is lost with the beam
-        elif not self._beam_was_ok:
-            self._reference = along  # counting restarts where the beam came back
-        self._beam_was_ok = beam_ok
-        return beam_ok, along
 
     def _beam_ok_locked(self, now_monotonic: float) -> bool:
         return now_monotonic >= self._blocked_until and self._signal_locked() >= self.config.beam_lost_signal

@@ -125,10 +125,6 @@ class SlcanPort:
             self._owner_lock = -1
 
     # ------------------------------------------------------------------------------ the bus side
-    def listening(self) -> bool:
-        """Whether the host has opened the channel on a plugged pty (only then are frames sent)."""
-        return self._channel_open and self._master is not None
-
     def send_frame(self, can_id: int, data: bytes, timestamp: float) -> None:
         with self._lock:
             if not (self._channel_open and self._master is not None):

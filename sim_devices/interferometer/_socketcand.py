@@ -85,10 +85,6 @@ class SocketcandServer:
             self._listener = None
 
     # ------------------------------------------------------------------------------ the bus side
-    def listening(self) -> bool:
-        """Whether any client is in raw mode (only those get frames)."""
-        return any(client.state == "raw" for client in self._clients)
-
     def send_frame(self, can_id: int, data: bytes, timestamp: float) -> None:
         seconds = int(timestamp)
         micros = int(round((timestamp - seconds) * 1e6))
