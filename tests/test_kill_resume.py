@@ -101,7 +101,7 @@ def test_kill_9_at_a_random_moment_then_resume_to_finished(tmp_path, number, nam
     resumed = subprocess.run([sys.executable, "-m", "procedures.cli", "resume", run_id, *station,
                               "--runs-dir", str(runs), "--jsonl"], cwd=ROOT, capture_output=True, text=True,
                              timeout=240)
-    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert resumed.returncode == 0, (resumed.stderr[-3000:], resumed.stdout[-3000:])
     done = json.loads(resumed.stdout.strip().splitlines()[-1])
     assert done["state"] == "FINISHED", done
 

@@ -50,6 +50,7 @@ from drivers.camera._interface import Frame, Roi
 from drivers.camera._pylon import PylonCamera
 
 PROTOCOL_TIMEOUT = 10.0  # s the simulated trigger line may take to answer a request
+EMULATED_FRAME_TIMEOUT = 10.0  # s: the longest wait for a replayed frame (see _EmulatedFeed.peek)
 # The adapters with the stream methods (stream_begin/fire/fetch/end): pylon (live, or its emulator
 # replaying the simulated cell's recording) and Aravis (always live).
 StreamingCamera = PylonCamera | AravisCamera
@@ -168,9 +169,12 @@ class _EmulatedFeed(_Feed):
                 return None
         j = self._next
         self.camera.stream_fire()
-        result = self.camera.stream_fetch(self.camera.timeout_s)
+        # The emulator serves a file that is already written: only a starved host makes it late, and a
+        # replay that timed out mid-stream was where a loaded worker crashed (SIGSEGV in pylon): wait longer.
+        timeout = max(self.camera.timeout_s, EMULATED_FRAME_TIMEOUT)
+        result = self.camera.stream_fetch(timeout)
         if result is None:
-            raise DeviceTimeout(self.camera._device, "retrieve frame", f"no frame within {self.camera.timeout_s:.3g} s")
+            raise DeviceTimeout(self.camera._device, "retrieve frame", f"no frame within {timeout:.3g} s")
         frame, block, _, failure = result
         if block != j:
             raise DeviceError(self.camera._device, "replay stream", f"the emulator served block {block}, expected {j}")
