@@ -169,8 +169,8 @@ class _EmulatedFeed(_Feed):
                 return None
         j = self._next
         self.camera.stream_fire()
-        # The emulator serves a file that is already written: only a starved host makes it late, and a
-        # replay that timed out mid-stream was where a loaded worker crashed (SIGSEGV in pylon): wait longer.
+        # The emulator serves a file that is already written: only a starved host makes it late, so the
+        # camera's own grab timeout (2 s by default) is too short for a replay on a loaded machine.
         timeout = max(self.camera.timeout_s, EMULATED_FRAME_TIMEOUT)
         result = self.camera.stream_fetch(timeout)
         if result is None:

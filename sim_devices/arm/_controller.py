@@ -353,6 +353,7 @@ class ArmController:
             if self.safety_bits & (SAFETY_BIT_PROTECTIVE | SAFETY_BIT_ESTOP):
                 raise RuntimeError("motion refused: the robot is stopped by its safety system")
             t = self.t_sim
+            self._flush_truth()  # the cycles so far, with the run and the record they belong to
             error_from = self._static_error_now(t)
             if self.run is not None:
                 self.run.phase = "replaced"
@@ -366,7 +367,6 @@ class ArmController:
                                error_from=error_from,
                                error_to=self._static_error(motion.target_pose, motion.start_pose, motion.t_end, noise))
             if self.truth_enabled:
-                self._flush_truth()  # the rows so far belong to the record before this one
                 self.run.record = self.recorder.open({
                     "kind": motion.kind, "t_start": t / self.config.time_scale,
                     "tcp_offset": self.tcp_offset.tolist(), "start_tcp": matrix_to_pose6(motion.start_pose).tolist(),
@@ -554,11 +554,17 @@ class ArmController:
                 # finisher (and the servers) have it between two of them, or a late cycle starves them.
                 time.sleep(0)
 
+    def _at_rest(self) -> bool:
+        """No motion, no joint or servo residual moving, no trajectory record open: nothing to advance."""
+        # ndarray.any() rather than np.any(): the check runs 500 times a second
+        return (self.run is None and not self.qd.any() and not self.qdd.any() and not self.error.any()
+                and not self.error_rate.any() and not self.recorder.is_open)
+
     def _quiet(self) -> bool:
-        """At rest (no motion, nothing ringing, no record open) and no listener needs every cycle."""
-        return (self.run is None and not self._finishing and not self.recorder.is_open and not self._truth_pending
-                and not self.qd.any() and not self.qdd.any() and not self.error.any() and not self.error_rate.any()
-                and not any(needs is None or needs() for needs in self._cycle_needs))
+        """At rest, nothing left to finish or compute, and no listener needs every cycle (the listeners
+        first: while a client is connected that is the whole check, every cycle)."""
+        return (not any(needs is None or needs() for needs in self._cycle_needs)
+                and not self._finishing and not self._truth_pending and self._at_rest())
 
     def step(self, slot: int) -> CycleState:
         """Advance to cycle ``slot``, publish its state to the listeners; returns it."""
@@ -585,12 +591,8 @@ class ArmController:
         self.cycle = slot
         self.t_sim = t = slot * self.period * self.config.time_scale
         h = t - t_prev
-        run = self.run
-        # ndarray.any() rather than np.any(): the check runs 500 times a second
-        at_rest = (run is None and not self.qd.any() and not self.qdd.any() and not self.error.any()
-                   and not self.error_rate.any() and not self.recorder.is_open)
-        if not at_rest and h > 0:
-            self._advance(run, t, h)
+        if h > 0 and not self._at_rest():
+            self._advance(self.run, t, h)
 
     def _advance_through_stall(self, first: int, last: int) -> None:
         """The physics through slots ``first`` … ``last`` (excluded) of a stall, nothing published."""
@@ -692,8 +694,7 @@ class ArmController:
             weights = np.arange(1, count + 1) / count
             times_list.append(t_prev + (t_end - t_prev) * weights)
             dev_list.append(deviation_prev + weights[:, None] * (deviation - deviation_prev))
-        times = np.concatenate(times_list) if len(times_list) > 1 else times_list[0]
-        dev = np.concatenate(dev_list) if len(dev_list) > 1 else dev_list[0]
+        times, dev = np.concatenate(times_list), np.concatenate(dev_list)
         n = len(times)
         step = float(self._truth_key[1])
         t = pending[-1][1]
