@@ -20,8 +20,8 @@ demo: $(STAMP)
 # started once), the longest modules first (tests/conftest.py); the 15 slowest tests are listed at the
 # end. About a third of the suite waits (on twins, retries, timeouts), so a third worker on two cores
 # fills those waits (measured on the 2-core VM: 674 s with 2 workers, 580 s with 3, both green). A fourth
-# only adds contention: 2026-12-03, same VM and commit, 516 s with 3 workers and 562 s with 4 (CPU 14.3
-# against 17.0 min), both green.
+# only adds contention: 2026-12-03, on a faster VM than the figures above, one commit, 516 s with 3 workers
+# and 562 s with 4 (CPU 14.3 against 17.0 min), both green.
 WORKERS ?= $(shell $(PYTHON) -c "import os; print(len(os.sched_getaffinity(0)) + 1)")
 PYTEST_PARALLEL := -n $(WORKERS) --dist loadfile --no-loadscope-reorder --durations=15
 
