@@ -15,7 +15,7 @@ transports stands for the moment the socketcand host's CAN controller has receiv
   burst of samples a late clock thread catches up with, are spread out as the bus spreads them;
 - frames are received in bus order: the stamps never go backwards.
 
-A frame is handed over up to a batch (5 ms) after its stamp, as a socketcand daemon forwards the
+A frame is handed over up to a batch (10 ms) after its stamp, as a socketcand daemon forwards the
 frames its kernel queued; a frame queued behind others on the bus gets a stamp a little later
 (by the bus time of the frames before it).
 """
@@ -27,6 +27,7 @@ import threading
 import numpy as np
 
 _INTERFRAME_BITS = 3
+_BLOCK = 1024  # draws per refill
 
 
 class CanBusTiming:
@@ -49,17 +50,25 @@ class CanBusTiming:
         self._received = -np.inf  # when the previous frame was received
         self._last_stamp = -np.inf
         self._lock = threading.Lock()
+        # Drawn in blocks: one numpy call per scalar costs more than the rest of a frame's timing.
+        self._uniform: list[float] = []
+        self._latency: list[float] = []
 
     def frame_bits(self, length: int) -> int:
         """Bits a standard data frame of ``length`` bytes occupies on the bus (stuffing drawn)."""
         stuffable = 34 + 8 * length
-        return 47 + 8 * length + int(self._rng.integers(0, (stuffable - 1) // 4 + 1)) + _INTERFRAME_BITS
+        if not self._uniform:
+            self._uniform = self._rng.random(_BLOCK).tolist()
+        stuff = int(self._uniform.pop() * ((stuffable - 1) // 4 + 1))  # uniform on 0..(stuffable - 1) // 4
+        return 47 + 8 * length + stuff + _INTERFRAME_BITS
 
     def receive_time(self, sent: float, length: int) -> float:
         """Kernel timestamp (epoch s) of a frame of ``length`` bytes handed over at ``sent`` (epoch s)."""
         with self._lock:
             received = max(sent, self._received + self.frame_bits(length) * self.bit_time)
             self._received = received
-            latency = 5e-6 + min(float(self._rng.exponential(self.rx_latency)), 50 * self.rx_latency)
-            self._last_stamp = max(received + latency, self._last_stamp + 1e-6)
+            if not self._latency:
+                tail = self._rng.exponential(self.rx_latency, _BLOCK)
+                self._latency = (5e-6 + np.minimum(tail, 50 * self.rx_latency)).tolist()
+            self._last_stamp = max(received + self._latency.pop(), self._last_stamp + 1e-6)
             return float(self._last_stamp)

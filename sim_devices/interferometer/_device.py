@@ -49,7 +49,7 @@ from sim_devices.interferometer._head import InterferometerHead
 
 FEED_FAULTS = (FaultKind.BEAM_BREAK, FaultKind.STALL, FaultKind.DROP_REPLY, FaultKind.BAD_CRC,
                FaultKind.GARBAGE, FaultKind.DISCONNECT, FaultKind.DELAY)
-BATCH = 0.005  # s: how far past a due sample the head's clock thread sleeps (see _run)
+BATCH = 0.01  # s: how far past a due sample the head's clock thread sleeps (see _run)
 
 
 class Transport(Protocol):
@@ -60,6 +60,9 @@ class Transport(Protocol):
     def disconnect(self, seconds: float) -> None: ...
 
     def hold(self, seconds: float) -> None: ...
+
+    def flush(self) -> None:
+        """Hand over the frames sent since the last flush (the clock thread flushes once per batch)."""
 
 
 class InterferometerDevice:
@@ -117,8 +120,10 @@ class InterferometerDevice:
             now = time.monotonic()
             if due > now:
                 # Past the next sample by one batch: the samples due meanwhile go out together, each
-                # stamped with its own time on the bus (a Python thread waking at 1 kHz costs a tenth
-                # of a core; a host reads CAN frames in bursts from its kernel's queue anyway).
+                # stamped with its own time on the bus, in one write per transport (a Python thread
+                # waking at 1 kHz costs a tenth of a core, and so does a client woken for every
+                # frame; a socketcand daemon forwards the frames its kernel queued in bursts anyway).
+                self._flush()
                 time.sleep(due - now + BATCH)
                 continue
             if now - due > self.config.max_catch_up:  # far behind (host starved): these samples are lost
@@ -143,6 +148,7 @@ class InterferometerDevice:
             if tick % environment_every == 0:
                 self._send_environment()
             tick += 1
+        self._flush()
 
     def _sample(self, now: float) -> None:
         reading = self.head.read(now)
@@ -192,7 +198,7 @@ class InterferometerDevice:
         self._count("environment_cycles")
 
     def _execute_commands(self) -> None:
-        while True:
+        while not self._commands.empty():  # checked first: an empty get_nowait raises, at every tick
             try:
                 can_id, data = self._commands.get_nowait()
             except queue.Empty:
@@ -241,6 +247,7 @@ class InterferometerDevice:
 
     def _send_garbage(self, size: int) -> None:
         junk = self._junk_rng.integers(0x80, 0x100, max(1, size), dtype=int).astype("uint8").tobytes()
+        self._flush()  # the frames before the junk go out before it
         for name, transport in self.transports.items():
             # socketcand: bytes that are not ASCII; slcan: the same, ended by CR like a frame line.
             transport.send_garbage(junk if name == "socketcand" else junk + b"\r")
@@ -254,6 +261,10 @@ class InterferometerDevice:
         stamp = self.timing.receive_time(sent, len(data))
         for transport in self.transports.values():
             transport.send_frame(can_id, data, stamp)
+
+    def _flush(self) -> None:
+        for transport in self.transports.values():
+            transport.flush()
 
     def _count(self, key: str, amount: int = 1) -> None:
         with self._stats_lock:

@@ -52,6 +52,7 @@ class InterferometerHead:
                             else float(constants.uniform(-config.scale_error_limit, config.scale_error_limit)))
         self._align_rng = world.rng("interferometer alignment")
         self._noise_rng = world.noise_rng("interferometer noise")
+        self._normals: list[float] = []  # drawn in blocks: a numpy call per sample costs more than the sample
         self._lock = threading.Lock()
         self._signal_cache: tuple[tuple[np.ndarray, np.ndarray, np.ndarray], float] | None = None
         self._position = world.opr_in_m()[:3, 3].copy()
@@ -114,7 +115,7 @@ class InterferometerHead:
                 self._reference = along  # counting restarts where the beam came back
             self._beam_was_ok = beam_ok
             signal = self._signal_locked() if now_monotonic >= self._blocked_until else 0.0
-            noise = float(self._noise_rng.normal(0.0, self.config.noise_std)) if self.config.noise_std else 0.0
+            noise = self._next_normal() * self.config.noise_std if self.config.noise_std else 0.0
             displacement = (1.0 + self.scale_error) * self.refraction_ratio * (along - self._reference) + noise
             return HeadReading(displacement if beam_ok else 0.0, beam_ok, self.datum_set and beam_ok, signal)
 
@@ -145,6 +146,11 @@ class InterferometerHead:
             }
 
     # ------------------------------------------------------------------------------ internals
+    def _next_normal(self) -> float:
+        if not self._normals:
+            self._normals = self._noise_rng.standard_normal(1024).tolist()
+        return self._normals.pop()
+
     def _signal_locked(self) -> float:
         # Read twice per sample at 1 kHz, but it changes only with the reflector's position or the
         # beam: computed again only then (the arrays are replaced, never changed in place).

@@ -186,7 +186,13 @@ class SlcanPort:
             self.overflows += 1
             return
         self._pending += payload
-        self._flush_locked()
+        if not frame:  # frames wait for the clock thread's flush() at the end of its batch: one write
+            self._flush_locked()
+
+    def flush(self) -> None:
+        """Write the frames queued since the last flush to the pty in one write."""
+        with self._lock:
+            self._flush_locked()
 
     def _flush_locked(self) -> None:
         if not self._pending or self._master is None:

@@ -54,7 +54,8 @@ class SocketcandServer:
         self._clients_lock = threading.Lock()
         self._refuse_until = 0.0
         self._hold_until = 0.0
-        self._held: list[bytes] = []
+        self._held: list[bytes] = []  # frames kept back by hold(), sent when it ends
+        self._outbox: list[bytes] = []  # frames since the last flush() (the clock thread's only)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.connections = 0
@@ -86,17 +87,26 @@ class SocketcandServer:
 
     # ------------------------------------------------------------------------------ the bus side
     def send_frame(self, can_id: int, data: bytes, timestamp: float) -> None:
+        """Queue one frame for the next ``flush()`` (with no client and no hold, it is dropped at once,
+        as the daemon drops frames nobody listens to)."""
+        holding = time.monotonic() < self._hold_until
+        if not (self._clients or holding):
+            return
         seconds = int(timestamp)
         micros = int(round((timestamp - seconds) * 1e6))
         if micros >= 1_000_000:
             seconds, micros = seconds + 1, micros - 1_000_000
         line = f"< frame {can_id:03X} {seconds}.{micros:06d} {data.hex().upper()} >".encode("ascii")
+        (self._held if holding else self._outbox).append(line)
+
+    def flush(self) -> None:
+        """Send the frames queued since the last flush, in one write per client (the held ones first,
+        once the hold is over)."""
         if time.monotonic() < self._hold_until:
-            self._held.append(line)
             return
-        if self._held:
-            line, self._held = b"".join(self._held) + line, []
-        self._broadcast(line)
+        lines, self._held, self._outbox = self._held + self._outbox, [], []
+        if lines:
+            self._broadcast(b"".join(lines))
 
     def hold(self, seconds: float) -> None:
         """Hold every frame for ``seconds``, then send them in one burst (a congested link or a busy
@@ -104,6 +114,7 @@ class SocketcandServer:
         self._hold_until = max(self._hold_until, time.monotonic() + max(0.0, seconds))
 
     def send_garbage(self, junk: bytes) -> None:
+        self.flush()
         self._broadcast(junk)
 
     def disconnect(self, seconds: float) -> None:
