@@ -186,6 +186,7 @@ class TwinProcess:
         self.exitcode: int | None = None
         self._process: SpawnProcess | None = None
         self._conn: Connection | None = None
+        self._stop_requested = False
         self._lock = threading.Lock()
 
     def start(self) -> dict[str, Any]:
@@ -253,15 +254,30 @@ class TwinProcess:
             raise TwinProcessError(f"{self.name}: control call {command!r} failed: {reply['error']}")
         return reply["result"]
 
+    def request_stop(self) -> None:
+        """Ask the child to stop, without waiting (``stop()`` then waits): several children told
+        first stop side by side."""
+        # Not under the call lock, as stop() never was: a call in flight must not hold up a stop.
+        process, conn = self._process, self._conn
+        if conn is None or process is None or self._stop_requested:
+            return
+        try:
+            if process.is_alive():
+                conn.send("stop")
+                self._stop_requested = True
+        except (OSError, BrokenPipeError):
+            pass
+
     def stop(self, timeout: float = 10.0) -> None:
         """Ask the child to stop its twins; terminate it (only it) if it does not exit in time."""
+        self.request_stop()
         process, conn = self._process, self._conn
         self._process = self._conn = None
+        self._stop_requested = False
         if process is None:
             return
         try:
             if conn is not None and process.is_alive():
-                conn.send("stop")
                 conn.poll(timeout)
         except (OSError, BrokenPipeError):
             pass

@@ -54,6 +54,8 @@ FAULT_TWINS = ("robot", "rotary_table", "interferometer")
 
 
 class Stoppable(Protocol):
+    def request_stop(self) -> None: ...
+
     def stop(self) -> None: ...
 
 
@@ -204,6 +206,9 @@ class TwinHandle:
         if not alive and code is None:  # ended, and the monitor has not recorded it yet: read it here
             code = self.process.poll_exit(timeout=2.0)
         return {"pid": self.pid, "alive": alive, "exitcode": code, "realtime": self.realtime}
+
+    def request_stop(self) -> None:
+        self.process.request_stop()
 
     def stop(self) -> None:
         self.process.stop()
@@ -396,6 +401,11 @@ class CellHost:
                 control.stop()
             except Exception as exc:
                 problems.append(f"control channel: {type(exc).__name__}: {exc}")
+        for _, twin in self._started:  # told all at once, they stop side by side
+            try:
+                twin.request_stop()
+            except Exception:
+                pass  # its stop() below tries again and reports what fails
         while self._started:
             name, twin = self._started.pop()
             try:

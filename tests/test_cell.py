@@ -115,11 +115,16 @@ def test_run_with_station_sim_starts_its_own_cell(tmp_path, capsys):
 
 
 def test_stop_stops_every_twin_even_when_one_fails(tmp_path):
-    stopped = []
+    stopped, asked = [], []
 
     class Twin:
         def __init__(self, name, fail=False):
             self.name, self.fail = name, fail
+
+        def request_stop(self):
+            asked.append((self.name, len(stopped)))
+            if self.fail:
+                raise OSError("pipe closed")
 
         def stop(self):
             stopped.append(self.name)
@@ -130,6 +135,7 @@ def test_stop_stops_every_twin_even_when_one_fails(tmp_path):
     host._started = [("cameras", Twin("cameras")), ("robot", Twin("robot", fail=True)), ("table", Twin("table"))]
     with pytest.raises(RuntimeError, match="stopping failed for robot: OSError: port busy"):
         host.stop()
+    assert asked == [("cameras", 0), ("robot", 0), ("table", 0)]  # all told before any is waited for
     assert stopped == ["table", "robot", "cameras"]  # reverse start order, none skipped
     assert not host._started
 

@@ -339,6 +339,10 @@ def test_a_stalled_stream_is_a_typed_error_and_the_robot_recovers(twin, robot):
         robot.move_linear(REFERENCE + [0.05, 0, 0, 0, 0, 0])
     assert time.monotonic() - t0 < 3 * robot.command_timeout + robot.command_timeout + 2.0
     time.sleep(max(0.0, t0 + 3.0 + 0.5 - time.monotonic()))  # the stall ends (0.5 s for its start's cycle)
+    deadline = time.monotonic() + 10.0
+    while twin.call("state")["moving"]:  # then the controller ends the move (a new one now would be refused)
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
     robot.close()
     robot.open()
     robot.move_linear(REFERENCE)

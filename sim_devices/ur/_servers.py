@@ -91,13 +91,17 @@ class TcpServer:
             except OSError:
                 pass
 
-    def stop(self) -> None:
+    def signal_stop(self) -> None:
+        """Stop accepting and drop the connections, without waiting for the accept loop to end."""
         self.running.clear()
         if self._listener is not None:
             self._listener.close()
         self.drop_connections()
+
+    def stop(self) -> None:
+        self.signal_stop()
         if self._thread is not None:
-            self._thread.join(2.0)
+            self._thread.join(2.0)  # the accept loop sees the flag within its 0.2 s accept timeout
 
     @property
     def connection_count(self) -> int:

@@ -92,6 +92,8 @@ class URControllerTwin:
             return
         self._started = False
         self.controller.stop()
+        for server in self.servers.values():  # all at once: each accept loop takes up to 0.2 s to see it
+            server.signal_stop()
         for server in self.servers.values():
             server.stop()
 
