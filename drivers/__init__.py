@@ -13,8 +13,8 @@ from drivers._errors import (
     DeviceTimeout,
     MotionRefused,
     ProtocolError,
+    SettingsError,
 )
-from drivers._settings import SettingsError
 
 __all__ = [
     "ClientLibraryMissing",

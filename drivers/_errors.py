@@ -52,3 +52,8 @@ class MotionRefused(DeviceError):
 
 class ClientLibraryMissing(DeviceConnectionError):
     """The adapter's client library is not installed (its optional extra was not asked for)."""
+
+
+class SettingsError(ValueError):
+    """A device's settings do not validate. The message names the device, the adapter and the
+    setting, and what was expected, on one line."""

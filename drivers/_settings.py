@@ -15,6 +15,8 @@ from typing import Any, Generic, TypeVar, get_args, get_origin
 from pydantic import BaseModel, ConfigDict, TypeAdapter, ValidationError
 from pydantic_core import ErrorDetails
 
+from drivers._errors import SettingsError
+
 SettingsT = TypeVar("SettingsT")
 
 
@@ -35,9 +37,6 @@ class DeviceSettings(BaseModel):
                               json_schema_extra=_adapter_required)
 
 
-class SettingsError(ValueError):
-    """A device's settings do not validate. The message names the device, the adapter and the
-    setting, and what was expected, on one line."""
 
 
 class SettingsUnion(Generic[SettingsT]):

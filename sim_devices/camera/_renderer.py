@@ -190,7 +190,10 @@ class Renderer:
         if name not in self._background:
             cfg = self.bench.config
             width, height = self.bench.cameras[name].size_px
-            y, x = np.mgrid[0:height, 0:width].astype(np.float32)
+            # Separable: the squares per column and per row, summed by broadcasting (a full mgrid is
+            # two 5 Mpx int64 arrays per camera at every cell start). Same float32 values.
+            x = np.arange(width, dtype=np.float32)[None, :]
+            y = np.arange(height, dtype=np.float32)[:, None]
             r2 = ((x - (width - 1) / 2) ** 2 + (y - (height - 1) / 2) ** 2) / (
                 ((width - 1) / 2) ** 2 + ((height - 1) / 2) ** 2
             )
