@@ -53,13 +53,16 @@ def _run(runs: Path, procedure: Path, station: Path) -> dict:
 
 @pytest.fixture(scope="module")
 def calibrations(cell, tmp_path_factory):
-    """The displacement (x, y, z: 10 mm steps) and angle (a, b, c: 0.5° steps) calibrations, 2 repeats."""
+    """The displacement (x, y, z: 10 mm steps) and angle (a, b, c: 0.5° steps) calibrations, 2 repeats
+    in 2 groups (the procedures' default is 3; two already give each curve a second start pose)."""
     tmp_path = tmp_path_factory.mktemp("calibrations")
     displacement = _run(tmp_path / "runs", _procedure(
         tmp_path, "displacement_calibration", step_mm=10.0, repeats=2, settle_time_s=0.05,
-        interferometer_average_s=0.05, frames_per_pose=1), cell.station_path)
+        interferometer_average_s=0.05, frames_per_pose=1, groups=2,
+        group_start_offsets_mm=[[0.0, 0.0, 0.0], [0.5, 0.5, 0.5]]), cell.station_path)
     angle = _run(tmp_path / "runs", _procedure(tmp_path, "angle_calibration", step_deg=0.5, repeats=2,
-                                               settle_time_s=0.05, frames_per_pose=1, table_speed_deg_s=20.0),
+                                               settle_time_s=0.05, frames_per_pose=1, table_speed_deg_s=20.0,
+                                               groups=2, group_start_offsets_deg=[0.0, 0.1]),
                  cell.station_path)
     return {"displacement": displacement, "angle": angle, "tmp": tmp_path}
 
@@ -71,7 +74,7 @@ def test_displacement_calibration_measures_real_errors_and_fits_them(calibration
     record = CalibrationRecord.from_json(Path(run["results"]["record_path"]).read_text(encoding="utf-8"))
     for axis in ("x", "z"):
         rows = data[axis]
-        assert len(rows) == 8 * 2 * 3  # 8 points (0..70 mm), 2 repeats, 3 groups
+        assert len(rows) == 8 * 2 * 2  # 8 points (0..70 mm), 2 repeats, 2 groups
         reference, true, measured, groups, points = (np.array([r[key] for r in rows])
                                                      for key in ("reference", "true", "measured", "group", "point"))
         # The interferometer agrees with the world's true displacement to well under a µm after
@@ -93,7 +96,7 @@ def test_displacement_calibration_measures_real_errors_and_fits_them(calibration
         floor = np.sqrt(np.mean([np.var(c, ddof=1) for c in cells]))
         print(f"{axis}: raw std {np.std(raw) * 1e6:.2f} µm, residual {np.std(residual) * 1e6:.2f} µm, "
               f"repeat floor {floor * 1e6:.2f} µm")
-        assert np.std(residual) < 1.75 * floor  # the floor from 24 two-repeat cells is known to ±14 %
+        assert np.std(residual) < 1.75 * floor  # the floor from 16 two-repeat cells is known to ±18 %
         assert np.std(residual) < 0.5 * np.std(raw)
         assert np.std(residual) < 3e-6
 
@@ -102,7 +105,7 @@ def test_displacement_calibration_measures_real_errors_and_fits_them(calibration
 def test_angle_calibration_uses_the_table_as_reference(cell, calibrations):
     run = calibrations["angle"]
     rows = run["results"]["data"]["b"]
-    assert len(rows) == 5 * 2 * 3
+    assert len(rows) == 5 * 2 * 2
     reference = np.array([r["reference"] for r in rows])
     true = np.array([r["true"] for r in rows])
     measured = np.array([r["measured"] for r in rows])
