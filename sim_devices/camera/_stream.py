@@ -53,7 +53,6 @@ import numpy as np
 from sim_devices._config import checked_fields
 from sim_devices._transforms import matrix_to_rotvec
 from sim_devices.camera._optics import AXIS_NAMES, OpticalBench
-from sim_devices.camera._renderer import Renderer
 from sim_devices.trajectory import TrajectoryLog
 from sim_devices.world import World
 
@@ -233,6 +232,10 @@ class StreamServer:
 
     def __init__(self, world: World, bench: OpticalBench, renderer_seed: int, root: Path, trajectories: Path | None,
                  config: StreamConfig) -> None:
+        # Imported here: the cell's supervisor reads StreamConfig from this module and never renders
+        # (the renderer's SciPy is a third of a second of every cell start).
+        from sim_devices.camera._renderer import Renderer
+
         self.world = world
         self.bench = bench
         self.renderer = Renderer(bench, seed=renderer_seed, bit_depth=8, session=world.config.session)
