@@ -70,6 +70,15 @@ def _signalled_at_once(cell: SimCell, moves: list[dict]) -> list[dict]:
             and any(abs(done - m["t_signal"]) < 0.01 and delay < 0.05 for done, delay in delays)]
 
 
+def _all_measured(run: dict) -> bool:
+    """Every move has its figures. A loaded host can make one unmeasurable (its done signal outside the
+    streamed poses, or too few poses): the analysis says why in the move's ``error``, which is printed."""
+    errors = [f"{m['key']}: {m['error']}" for m in run["results"]["moves"] if "error" in m]
+    if errors:
+        print("moves not measured:", "; ".join(errors))
+    return not errors
+
+
 def _run_in_real_time(cell: SimCell, tmp_path: Path, procedure: Path, usable=lambda run: True,
                       tries: int = 3) -> dict:
     """``_run``, repeated when the host held the robot twin's cycle back by 50 ms or more during the run
@@ -102,12 +111,12 @@ def _run(tmp_path: Path, procedure: Path, station: Path) -> dict:
 def test_stabilisation_against_the_twins_truth(cell, tmp_path):
     run = _run_in_real_time(cell, tmp_path, _procedure(tmp_path, "iso9283_stabilisation", speeds_percent=[100],
                                                        band_um=10.0, window_s=0.4),
-                            usable=lambda run: bool(_signalled_at_once(cell, run["results"]["moves"])))
+                            usable=lambda run: _all_measured(run)
+                            and bool(_signalled_at_once(cell, run["results"]["moves"])))
     results = run["results"]
     assert results["simulated"] and len(results["moves"]) == 2
     period = 1.0 / RATE
     prompt = _signalled_at_once(cell, results["moves"])
-    print([(m["key"], m["t_signal"], m["true"]["dense"]) for m in results["moves"]], [m["key"] for m in prompt])
     # A real ring-down: the 5 kg arrival at 1 m/s overshoots by µm and takes time to enter 10 µm. Judged on
     # the dense (1 kHz) truth: at the stream's 150 Hz instants, which fall wherever the host's timing puts
     # them, one arrival may show little of its peak, and two arrivals in a row may both. Only where the
