@@ -13,6 +13,10 @@ workers never compete for an address. Temporary folders are per worker already (
 ``tmp_path`` lives under ``basetemp/popen-gwN``), and every cell, twin and server is started and
 stopped by a fixture.
 
+The summary ends with a line on this host's speed (best of three short pure-Python and NumPy loops,
+timed after the last test): fresh machines of one kind were seen to differ more than twofold, and a
+suite's time means little without it.
+
 ``SUITE_RESOURCES=FILE`` appends one JSON line per test phase (wall and CPU seconds of this process
 and of its reaped children) to FILE: where the suite's time and CPU go (``make test-profile``).
 """
@@ -24,6 +28,7 @@ import os
 import resource
 import time
 
+import numpy as np
 import pytest
 
 from sim_devices.cell import LOOPBACK_BLOCK_ENV
@@ -106,3 +111,30 @@ def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None):
               "cpu_children": round(children_after - children, 3)}
     with open(path, "a", encoding="utf-8") as handle:
         handle.write(json.dumps(record) + "\n")
+
+
+def host_speed() -> tuple[float, float]:
+    """Best of three: ms for a 10⁶-step pure-Python loop, and for sorting and transforming 10⁶ floats."""
+    data = np.random.default_rng(0).random(1_000_000)
+    python_s = numpy_s = float("inf")
+    for _ in range(3):
+        start = time.perf_counter()
+        total = 0
+        for i in range(1_000_000):
+            total += i * i
+        python_s = min(python_s, time.perf_counter() - start)
+        start = time.perf_counter()
+        np.fft.rfft(np.sort(data))
+        numpy_s = min(numpy_s, time.perf_counter() - start)
+    return python_s * 1e3, numpy_s * 1e3
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus: int, config: pytest.Config) -> None:
+    if _worker_index() is not None:
+        return
+    python_ms, numpy_ms = host_speed()
+    cpus = len(os.sched_getaffinity(0))
+    load = ", ".join(f"{v:.2f}" for v in os.getloadavg())
+    terminalreporter.write_line(f"host speed after the suite: pure-Python loop {python_ms:.0f} ms, NumPy "
+                                f"{numpy_ms:.0f} ms (this VM on 2026-12-03: 44 and 26 ms), {cpus} CPUs, "
+                                f"load average {load}")
