@@ -59,7 +59,8 @@ INTEGRATION = {
     "test_fuzz_inputs.py", "test_interferometer_can.py", "test_interferometer_timing.py", "test_kill_resume.py",
     "test_procedures_hostile_inputs.py", "test_pty_relay.py", "test_robot_dynamic.py", "test_robot_isolation.py",
     "test_robot_ur.py", "test_rotary_drivers.py", "test_rotary_modbus.py", "test_rotary_pipython.py",
-    "test_run_lock.py", "test_serve_browser.py", "test_serve_opcua.py", "test_store_postgres.py",
+    "test_run_lock.py", "test_serve_browser.py", "test_serve_opcua.py", "test_serve_shutdown.py",
+    "test_store_postgres.py",
     "test_system_sim.py", "test_ur_twin.py", "test_wire_conventions.py", "test_world.py", "test_world_race.py",
 }
 FIRST_WORKER_BLOCK = 10  # 127.0.10, 127.0.11, …: clear of the 127.0.0 block a developer's own cell uses

@@ -32,7 +32,14 @@ class StoreWatcher:
     def __init__(self, reader: StoreReader, interval_s: float) -> None:
         self.reader, self.interval_s = reader, interval_s
         self.version = -1
+        self.closed = False
         self._changed = asyncio.Event()
+
+    def close(self) -> None:
+        """End every open stream (the server is shutting down): each returns at once, so the server's
+        graceful shutdown finds its connections done instead of cancelling them mid-wait."""
+        self.closed = True
+        self._changed.set()
 
     async def run(self) -> None:
         while True:
@@ -48,7 +55,7 @@ class StoreWatcher:
 
     async def wait(self, seen: int, timeout: float) -> int:
         """The version once it differs from ``seen``, or the same after ``timeout`` seconds."""
-        if self.version == seen:
+        if self.version == seen and not self.closed:
             with contextlib.suppress(TimeoutError):
                 await asyncio.wait_for(self._changed.wait(), timeout)
         return self.version
@@ -81,10 +88,13 @@ def _event_stream(events: AsyncIterator[str]) -> StreamingResponse:
 
 
 async def _changes_of(watcher: StoreWatcher) -> AsyncIterator[int | None]:
-    """The store's version each time it changes; None after every ``KEEP_ALIVE_S`` without a change."""
+    """The store's version each time it changes; None after every ``KEEP_ALIVE_S`` without a change.
+    Ends once the watcher is closed."""
     seen = -2
     while True:
         version = await watcher.wait(seen, KEEP_ALIVE_S)
+        if watcher.closed:
+            return
         if version == seen:
             yield None
             continue

@@ -58,11 +58,18 @@ async def serve(options: ServeOptions, *, ready: Callable[[dict[str, Any]], None
     """
     reader = StoreReader(options.web.runs_dir)
     sock = bind(options.host, options.port)
-    server = _Server(uvicorn.Config(create_app(options.web, reader=reader), log_level="warning",
-                                    timeout_graceful_shutdown=2, access_log=False))
+    app = create_app(options.web, reader=reader)
+    server = _Server(uvicorn.Config(app, log_level="warning", timeout_graceful_shutdown=2, access_log=False))
+
+    def shut_down() -> None:
+        # The live pages' event streams never end by themselves: closed first, they let the graceful
+        # shutdown finish, where uvicorn would cancel them after its timeout and log each traceback.
+        app.state.watcher.close()
+        server.should_exit = True
+
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, lambda: setattr(server, "should_exit", True))
+        loop.add_signal_handler(sig, shut_down)
     opcua = None
     try:
         if options.opcua is not None:
