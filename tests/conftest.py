@@ -17,8 +17,9 @@ The summary ends with a line on this host's speed (best of three short pure-Pyth
 timed after the last test): fresh machines of one kind were seen to differ more than twofold, and a
 suite's time means little without it.
 
-``SUITE_RESOURCES=FILE`` appends one JSON line per test phase (wall and CPU seconds of this process
-and of its reaped children) to FILE: where the suite's time and CPU go (``make test-profile``).
+``SUITE_RESOURCES=FILE`` appends one JSON line per test to FILE: wall and CPU seconds of this process and
+of its reaped children, and how its phases ended (a failure is known while the suite still runs), which
+shows where the suite's time and CPU go (``SUITE_RESOURCES=/tmp/r.jsonl make test``).
 """
 
 from __future__ import annotations
@@ -98,6 +99,17 @@ def _cpu_seconds() -> tuple[float, float]:
     return own.ru_utime + own.ru_stime, children.ru_utime + children.ru_stime
 
 
+_OUTCOMES = pytest.StashKey[list[str]]()
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo):
+    outcome = yield
+    report = outcome.get_result()
+    if report.failed or report.when == "call" or report.skipped:
+        item.stash.setdefault(_OUTCOMES, []).append(f"{report.when} {report.outcome}")
+
+
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None):
     path = os.environ.get("SUITE_RESOURCES")
@@ -109,7 +121,8 @@ def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None):
     own_after, children_after = _cpu_seconds()
     record = {"test": item.nodeid, "worker": os.environ.get("PYTEST_XDIST_WORKER", "main"),
               "wall": round(time.monotonic() - wall, 3), "cpu_self": round(own_after - own, 3),
-              "cpu_children": round(children_after - children, 3)}
+              "cpu_children": round(children_after - children, 3),
+              "outcome": ", ".join(item.stash.get(_OUTCOMES, []))}
     with open(path, "a", encoding="utf-8") as handle:
         handle.write(json.dumps(record) + "\n")
 
