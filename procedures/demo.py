@@ -162,6 +162,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--time-scale", type=float, default=4.0,
                         help="simulated seconds per wall second for robot and table motion (default 4)")
     args = parser.parse_args(argv)
+    if argv is None:  # Ctrl-C is the demo's even when started with SIGINT ignored (as `instrument`)
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         return _demo(args)
     except KeyboardInterrupt:  # outside a run (the cell starting, between runs, the report): nothing to keep

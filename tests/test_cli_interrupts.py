@@ -26,16 +26,35 @@ UNCLEAN = ("Traceback", "Exception ignored", "KeyboardInterrupt")
 
 
 class Command:
-    """One command in a process group of its own, its output in files (read while it runs)."""
+    """One command in a process group of its own, its output in files (read while it runs).
 
-    def __init__(self, tmp_path: Path, argv: list[str]) -> None:
+    It starts as a terminal's foreground job does, with SIGINT at its default, whatever this test process
+    inherited (a suite started by a script in the background has SIGINT ignored, and an ignore is inherited
+    through exec); ``sigint_ignored`` starts it as such a background job instead. The disposition is set in
+    the main thread around the fork only (exec resets a handled signal to its default, keeps an ignored one).
+    """
+
+    def __init__(self, tmp_path: Path, argv: list[str], sigint_ignored: bool = False) -> None:
         self.out, self.err = tmp_path / "stdout.txt", tmp_path / "stderr.txt"
         env = {**os.environ, "COLUMNS": "200"}
         for name in ("INSTRUMENT_STORE", "INSTRUMENT_RUNS"):  # every command names its runs folder
             env.pop(name, None)
-        with open(self.out, "w") as out, open(self.err, "w") as err:
-            self.process = subprocess.Popen(argv, cwd=tmp_path, env=env, stdin=subprocess.DEVNULL, stdout=out,
-                                            stderr=err, start_new_session=True)
+        previous = signal.signal(signal.SIGINT, signal.SIG_IGN if sigint_ignored else signal.default_int_handler)
+        try:
+            with open(self.out, "w") as out, open(self.err, "w") as err:
+                self.process = subprocess.Popen(argv, cwd=tmp_path, env=env, stdin=subprocess.DEVNULL, stdout=out,
+                                                stderr=err, start_new_session=True)
+        finally:
+            signal.signal(signal.SIGINT, previous)
+
+    def catches_sigint(self) -> bool:
+        """Whether the process has a handler for SIGINT now (Linux: its ``SigCgt`` mask)."""
+        try:
+            status = Path(f"/proc/{self.process.pid}/status").read_text()
+        except OSError:
+            return False
+        caught = re.search(r"^SigCgt:\s*([0-9a-f]+)", status, re.M)
+        return bool(caught and int(caught.group(1), 16) & (1 << (signal.SIGINT - 1)))
 
     def ctrl_c(self) -> None:
         if self.process.poll() is None:
@@ -73,8 +92,8 @@ class Command:
 def start(tmp_path):
     started: list[Command] = []
 
-    def _start(*argv: str) -> Command:
-        command = Command(tmp_path, list(argv))
+    def _start(*argv: str, sigint_ignored: bool = False) -> Command:
+        command = Command(tmp_path, list(argv), sigint_ignored)
         started.append(command)
         return command
 
@@ -115,6 +134,23 @@ def test_ctrl_c_while_starting_is_one_line(tmp_path, start, delay_s):
         assert command.stderr.strip().splitlines()[-1] == "interrupted"
     if code == 3:
         _paused_says_how_to_continue(command, tmp_path / "runs")
+
+
+def test_ctrl_c_reaches_a_command_its_shell_started_with_sigint_ignored(tmp_path, start):
+    """A script's background job (``instrument serve &``, and the runs it launches) inherits SIGINT ignored;
+    the command takes it back as it starts, so that a Ctrl-C (or the web view's Pause) while it loads is
+    the one line ``interrupted``, not lost. Before, it was ignored until the run began: the run then ran
+    to its end, exit 0."""
+    command = start(*_instrument_run(tmp_path), sigint_ignored=True)
+    deadline = time.monotonic() + 60
+    while not command.catches_sigint() and command.process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert command.catches_sigint(), "the command never took SIGINT"
+    command.ctrl_c()
+    code = command.wait()
+    _clean(command)
+    assert code == 130, (code, command.stderr)
+    assert command.stderr.strip().splitlines()[-1] == "interrupted"
 
 
 def test_one_ctrl_c_pauses_and_says_how_to_continue(tmp_path, start):

@@ -72,6 +72,8 @@ def main(argv: list[str] | None = None) -> int:
     Ctrl-C while the command line loads is the one line ``interrupted`` (exit 130), and once the command has
     ended Ctrl-C is ignored, so that the interpreter's shutdown (its atexit callbacks) is never cut short.
     """
+    if argv is None:
+        _take_ctrl_c()
     try:
         try:
             from procedures.cli._main import main as command
@@ -88,6 +90,15 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         if argv is None:
             signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _take_ctrl_c() -> None:
+    """SIGINT raises KeyboardInterrupt in this process from now on, even if it was started with SIGINT
+    ignored: a non-interactive shell starts its background jobs so (``instrument serve &`` in a start-up
+    script, whose runs inherit it), and Python keeps an inherited ignore. The run itself always takes
+    Ctrl-C (``signals_control``) and the web view's Pause is a SIGINT: a press while the command loads
+    must not be the one that is silently lost."""
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def __getattr__(name: str) -> Any:
